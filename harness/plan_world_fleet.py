@@ -115,8 +115,8 @@ class ReaderFleet(Fleet):
         self.resolved = now
         hedges = self.router.hedges
 
-        def counted(waiting, at):
-            out = hedges(waiting, at)
+        def counted(waiting, at, refused=None):
+            out = hedges(waiting, at, refused)
             net.out.hedged += len(out)
             return out
         self.router.hedges = counted

@@ -65,13 +65,16 @@ class Video:
     """What this reader asked of one video in one pass: the host it asks, the first position that
     needs it (the hosts decode makes in that order), the samples asked (ordinal -> request id),
     and the requests in flight ((host, request id) -> (host, ordinals, asked at): each host
-    numbers its requests itself), and the hosts that refused a make of it (it is asked of others)."""
+    numbers its requests itself), the hosts that refused a make of it (it is asked of others),
+    and whether its arbiter placed it at a host this reader does not read (``here``: the
+    arbiter is asked to make it itself, not asked where it is placed again)."""
 
     host: Optional[str] = None
     position: int = _LAST
     asked: Dict[int, int] = field(default_factory=dict)
     flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
     refused: Dict[str, str] = field(default_factory=dict)
+    here: bool = False
 
 
 class Pass:
@@ -136,11 +139,13 @@ class Pass:
         """Ask ``host`` for ``ordinals`` of ``video`` (None: its windows): of the video's arbiter
         (``Router.arbiter``), to be made there unless a reader placed it elsewhere, or (``spill``)
         placed at that host unless the arbiter holds it (``Make.route``); of another host, or
-        (``here``) of one that said where it is placed, made there."""
+        (``here``) made there: asked of one that said where it is placed, or a copy (a hedge, a
+        backup request), which an arbiter would move back to the host it copies."""
         link = self.fleet.links[host]
         req = next(link.ids)
         v = self.videos.setdefault(video, Video())
-        route = spill if spill is not None else "" if not here and host == self.router.arbiter(video, now) else None
+        route = spill if spill is not None else "" if not (here or v.here) and host == self.router.arbiter(video, now) \
+            else None
         link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
                         min(v.position, _LAST), route).to_wire())
         self.flight[(host, req)] = (video, ordinals)
@@ -286,11 +291,12 @@ class Pass:
         for video, ords in parked:
             self.ask(video, ords, now)
         waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
-        for _, video, host in self.router.hedges(waiting, now):
+        for _, video, host in self.router.hedges(waiting, now, {video: v.refused for video, v in self.videos.items()
+                                                                 if v.refused}):
             v = self.videos[video]
             v.host = host
             for h, ords, _ in list(v.flight.values()):
-                self.send(video, ords, host, now)
+                self.send(video, ords, host, now, here=True)  # a hedge is made where asked, not moved back
         steal(self, now, now - self.head_since >= STEAL_S)
         for video, v in list(self.videos.items()):
             for hr, (h, ords, at) in list(v.flight.items()):
@@ -380,8 +386,10 @@ class Pass:
         self.router.moved(self.epoch, video, ep, to, now)
         if v.host == ep:
             v.host = to
-        if to == ep:
-            log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
+        if to == ep and not v.here:  # once a video a pass: its next makes ask the arbiter to make it
+            v.here = True
+            if msg.host not in self.fleet.left_out and msg.host not in self.fleet.out_for_pass:  # not named already
+                log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
         self.send(video, ordinals, to, now, here=True)
 
 
@@ -439,9 +447,9 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
-        h = read.router.copy(read.epoch, video, n, now, asked, v.position)
+        h = read.router.copy(read.epoch, video, n, now, asked, v.position, v.refused)
         if h is not None:
-            read.send(video, None if ords is None else tuple(sorted(ords)), h, now)
+            read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
 
 def take(read: "Pass", timeout_s: float) -> None:
     """Wait up to half a second for the hosts' answers to pass ``read`` and take them (:meth:`Pass.receive`).

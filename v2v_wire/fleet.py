@@ -56,7 +56,7 @@ import functools
 import hashlib
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Collection, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -446,15 +446,16 @@ class Router:
         self._load -= n
 
     def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
-             position: Optional[int] = None) -> Optional[str]:
+             position: Optional[int] = None, refused: Collection[str] = ()) -> Optional[str]:
         """The host to ask a copy of ``video`` (``samples`` samples, first needed at
         ``position``) that a reader waits on, asked of ``asked``: the first of its ranking with
-        nothing queued by any reader (:meth:`backlog`), not suspect, if it would make it sooner
-        (:meth:`finish`) than the hosts asked would (a slow host, or one with earlier work
-        queued). The host's queue takes the video; None: no copy (a host silent for ``hedge_s``
-        is :meth:`hedges`'s)."""
+        nothing queued by any reader (:meth:`backlog`), not suspect, not one that ``refused`` a
+        make of it, if it would make it sooner (:meth:`finish`) than the hosts asked would (a
+        slow host, or one with earlier work queued). The host's queue takes the video; None: no
+        copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
-        free = [h for h in self.hosts if h not in asked and self.backlog(h, now) <= 0 and not self.suspect(h, now)]
+        free = [h for h in self.hosts if h not in asked and h not in refused and self.backlog(h, now) <= 0
+                and not self.suspect(h, now)]
         if not free:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
@@ -464,16 +465,18 @@ class Router:
         self.ask(pick, epoch, video, samples, now, position)
         return pick
 
-    def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float) -> List[Tuple[int, str, str]]:
+    def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float,
+               refused: Optional[Mapping[str, Collection[str]]] = None) -> List[Tuple[int, str, str]]:
         """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts
-        that answered nothing for ``hedge_s``: each asked of the next host of its ranking too.
-        Returns ``(epoch, video, host)`` for each new copy."""
+        that answered nothing for ``hedge_s``: each asked of the next host of its ranking too, not
+        one that refused a make of it (``refused``: video -> hosts). Returns ``(epoch, video,
+        host)`` for each new copy."""
         out = []
         for epoch, video, samples in waiting:
             asked = [h for h in self.asked.get((epoch, video), ()) if h in self.hosts]
             if asked and not all(self.suspect(h, now) for h in asked):
                 continue
-            h = self.route(epoch, video, samples, now, exclude=asked)
+            h = self.route(epoch, video, samples, now, exclude=[*asked, *(refused or {}).get(video, ())])
             if h is not None:
                 out.append((epoch, video, h))
         return out
