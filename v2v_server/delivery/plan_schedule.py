@@ -27,7 +27,10 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   idle heads only: a job cut off), then the furthest from the nearest moving head before them
   (:class:`Heads`). A decode makes a whole video, whose samples the shuffle buffer spreads over
   positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
-  video again. A fetch whose sample went makes it again.
+  video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
+  ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
+  after it) is kept beside that bound, up to as many samples again: it is read when the new
+  job's head reaches it, where dropping it would decode its videos twice in the epoch.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -440,6 +443,12 @@ class PlanScheduler:
             self.store, self.fetched = OrderedDict(), set()
         self.fetched_at[epoch] = now
 
+    @property
+    def reach(self) -> int:
+        """Positions past a moving head its reader's samples are made ahead for: ``lookahead``
+        and a shuffle buffer (a decode makes a whole video, whose samples the buffer spreads)."""
+        return self.lookahead + self.shuffle_buffer
+
     def queued(self) -> int:
         """Samples every reader's makes ask that are not made yet (``Orders.queued``): what a
         host says its readers in each answer to a make and to a ``plan_ask``."""
@@ -688,7 +697,7 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
         if not plan.complete and f.stop > plan.known:
             for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
                 waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-    reach = s.lookahead + s.shuffle_buffer
+    reach = s.reach
 
     def ahead_of_a_head(sk) -> bool:  # made ahead for a moving head, not far past every one (a job cut off)
         plan = s.plans.get(sk[0])
@@ -718,14 +727,15 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
 def trim(s: "PlanScheduler", now: float) -> None:
     """Scheduler ``s``'s keeping (module docstring): drop fetched samples past ``keep_samples``
     (least recently fetched first); then, while the store holds more than ``keep_samples +
-    lookahead`` plus the largest video's samples besides those pending fetches name, samples
-    never fetched that no pending fetch names, the ones readers need last first
-    (:func:`spare_samples`)."""
+    lookahead`` plus the largest video's samples besides those pending fetches name and the
+    stock a moving head reaches past its reach (up to as many again), samples never fetched that
+    no pending fetch names, the ones readers need last first (:func:`spare_samples`)."""
     fetched = [sk for sk in s.store if sk in s.fetched]
     for sk in fetched[:max(0, len(fetched) - s.keep_samples)]:
         del s.store[sk]
         s.fetched.discard(sk)
-    over = len(s.store) - s.keep_samples - max(s.lookahead, s.shuffle_buffer) - s.slots.largest
+    bound = max(s.lookahead, s.shuffle_buffer)
+    over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
     named = set()
@@ -749,5 +759,11 @@ def trim(s: "PlanScheduler", now: float) -> None:
         p = None if plan is None else plan.position(sk[1])
         return None if p is None else min((p - h for h in stops if h <= p), default=None)
 
+    # stock a moving head reaches past what it makes ahead for itself (a cut-off job's, ahead of
+    # the next job's head): kept beside the bound, up to a bound's worth, until the head reaches it
+    later = sum(1 for sk in s.store if sk not in s.fetched and sk not in named and (reached(sk) or 0) >= s.reach)
+    over -= min(later, bound)
+    if over <= 0:
+        return
     for sk in spare_samples(s.store, s.fetched, named, live, over, reached):
         del s.store[sk]
