@@ -30,7 +30,9 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
   after it) is kept beside that bound, up to as many samples again: it is read when the new
-  job's head reaches it, where dropping it would decode its videos twice in the epoch.
+  job's head reaches it, where dropping it would decode its videos twice in the epoch. A sample
+  a plan still unfolding has not placed yet counts as one at the plan's edge (its first position
+  not decided), and is kept where no head moves (it is read next).
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -747,21 +749,26 @@ def trim(s: "PlanScheduler", now: float) -> None:
     if over <= 0:
         return
     live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
+    asked = set(named)
     named |= s.orders.named(list(s.store), now)
-    for e in live & set(s.plans):  # what decides a plan still unfolding is kept: it is read next
+    undecided = set()  # samples of a plan still unfolding past its decided positions: read from its edge on
+    for e in live & set(s.plans):
         keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
-        named.update((e, k) for k in s.plans[e].undecided(keys))
+        undecided.update((e, k) for k in s.plans[e].undecided(keys))
     waiting = {f.client for f in s.pending}
     heads = {e: s.heads.moving(e, now, waiting) for e in live}
 
-    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:
+    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample as one at the plan's edge
         plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
-        p = None if plan is None else plan.position(sk[1])
+        p = None if plan is None else plan.known if sk in undecided else plan.position(sk[1])
         return None if p is None else min((p - h for h in stops if h <= p), default=None)
 
+    named |= {sk for sk in undecided if reached(sk) is None}  # the plan's edge, where no head moves: read next
+
     # stock a moving head reaches past what it makes ahead for itself (a cut-off job's, ahead of
-    # the next job's head): kept beside the bound, up to a bound's worth, until the head reaches it
-    later = sum(1 for sk in s.store if sk not in s.fetched and sk not in named and (reached(sk) or 0) >= s.reach)
+    # the next job's head, decided or deciding the plan's next positions): kept beside the bound,
+    # up to a bound's worth, until the head reaches it
+    later = sum(1 for sk in s.store if sk not in s.fetched and sk not in asked and (reached(sk) or 0) >= s.reach)
     over -= min(later, bound)
     if over <= 0:
         return
