@@ -405,3 +405,39 @@ def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_
     assert [(h, m.route, m.ordinals) for h, m in sent[1:]] == [(other, None, make.ordinals)]
     read.ask(v, (3,), 0.2)
     assert [(h, m.route) for h, m in sent[2:]] == [(other, None)]
+
+
+def test_a_backup_request_or_hedge_never_goes_to_a_host_that_refused_the_video():
+    """``Router.copy`` and ``Router.hedges`` pick the next host of the video's ranking past those
+    that refused a make of it (a reader asked such a host a copy at every rescue turn: 90 asks of
+    one video in a pass), and none when every other host refused."""
+    hosts = HOSTS[:3]
+    video = "clips/a.mp4"
+    first = rank_hosts(video, hosts)[0]
+    others = [h for h in hosts if h != first]
+
+    def slow_first():  # the video asked of its first host, slow with a long queue; the others free
+        r = Router(hosts, hedge_s=10.0)
+        r.ask(first, 0, "clips/b.mp4", 200, 0.0, 0)
+        r.ask(first, 0, video, 10, 0.0, 5)
+        for h in hosts:
+            r.heard(h, 0.5, rate=5.0)
+        return r
+
+    copy = slow_first().copy(0, video, 10, 1.0, [first], 5)
+    assert copy in others
+    assert slow_first().copy(0, video, 10, 1.0, [first], 5, refused=[copy]) == next(h for h in others if h != copy)
+    assert slow_first().copy(0, video, 10, 1.0, [first], 5, refused=others) is None
+
+    def silent_first():  # the video asked of its first host, silent past hedge_s; the others heard
+        r = Router(hosts, hedge_s=10.0)
+        r.ask(first, 0, video, 10, 0.0, 0)
+        for h in others:
+            r.heard(h, 29.0)
+        return r
+
+    (_, _, hedge), = silent_first().hedges([(0, video, 10)], 30.0)
+    assert hedge in others
+    assert silent_first().hedges([(0, video, 10)], 30.0, {video: [hedge]}) == \
+        [(0, video, next(h for h in others if h != hedge))]
+    assert silent_first().hedges([(0, video, 10)], 30.0, {video: others}) == []
