@@ -31,7 +31,7 @@ epoch step by step, each once its rows are had and no sooner than its appetite a
 fleet's pods are made and removed by a HorizontalPodAutoscaler (``harness.hpa``: the
 controller's rule, run every 15 s on the manifest of ``deploy/k8s-autoscale``), each pod ready
 ``startup_s`` after it is made and joining the reader at its next resolution of the name; the
-reader asks ahead ``LOOKAHEAD_DECODES`` decodes per worker of the hosts it reads. Each pod's
+reader asks ahead ``AHEAD_DECODES`` decodes per worker of the hosts it reads. Each pod's
 metrics are read every 15 s (:data:`METRIC_WINDOW_S`).
 
 Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
@@ -59,15 +59,10 @@ import numpy as np
 
 from v2v_wire.commands import json_output_problem, write_whole
 from v2v_client.fleet_pass import STEAL_S
-from v2v_wire.fleet import RateMeter, Router, video_key
+from v2v_wire.fleet import AHEAD_DECODES, RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
 from harness.hpa import CPU_INITIALIZATION_S, SYNC_S, Hpa, HpaSpec, PodSample
-
-#: Decodes per worker a reader asks ahead by default: a clip of many windows decodes for many
-#: times the mean, and the steps after it must find their clips made meanwhile (6 gave 0.72 of
-#: the hosts' rate over 10-90 % of the epoch at 128 hosts, 10 gave 0.97: docs/scaling.md).
-LOOKAHEAD_DECODES = 10
 
 #: Frames per sample (the paper's 40 voxels x 5 bins + 1) and frames between window starts.
 SAMPLE_FRAMES, WINDOW_STRIDE = 201, 200
@@ -85,7 +80,7 @@ class Fleet:
         slow: ``(host index, factor)``: that host's speed times ``factor`` (``None``: none).
         stall_every_s, stall_s: mean seconds between a host's stalls and mean stall length (0: none).
         step: positions per step (every rank's batch).
-        lookahead: positions the reader asks ahead of the step it reads (None: ``LOOKAHEAD_DECODES``
+        lookahead: positions the reader asks ahead of the step it reads (None: ``Router.ahead_decodes``
             decodes per worker of the fleet, at the corpus's mean samples per clip).
         hedge_s: seconds a host may answer nothing before the videos a reader waits on are
             asked of the next host.
@@ -281,8 +276,7 @@ class _World:
         self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.hosts = [f"host-{k:03d}" for k in range(self.n)]
         self.index = {h: k for k, h in enumerate(self.hosts)}
-        mean = lay.samples / max(1, len(lay.needs))
-        self.lookahead = f.lookahead or int(LOOKAHEAD_DECODES * self.n * f.slots * mean) + f.step
+        self.mean = lay.samples / max(1, len(lay.needs))
         self.t0 = max((s.heard for r in routers or () for s in r.hosts.values()), default=0.0)
         self.meters = [RateMeter() for _ in range(self.n)]  # each host's own measure of its capacity
         self.rank_of = [(p % f.step) * self.ranks // f.step for p in range(lay.length)]
@@ -303,6 +297,17 @@ class _World:
         self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
         self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
         self.step_times: List[Tuple[int, float]] = []
+
+    @property
+    def lookahead(self) -> int:
+        """Positions the readers ask ahead of the step read: ``f.lookahead``, else the first
+        rank's router's decodes ahead (``Router.ahead_decodes``: its window grows as the hosts'
+        first decodes measure them; static shards: ``AHEAD_DECODES`` per worker) of the corpus's
+        mean samples a clip, and a step."""
+        if self.f.lookahead:
+            return self.f.lookahead
+        decodes = self.routers[0].ahead_decodes() if self.routers else AHEAD_DECODES * self.n * self.f.slots
+        return int(decodes * self.mean) + self.f.step
 
     def _rank_needs(self) -> List[Dict[str, Tuple[int, int]]]:
         out: List[Dict[str, Tuple[int, int]]] = [{} for _ in range(self.ranks)]
@@ -504,7 +509,8 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
 
 
 def _routers(f: Fleet) -> List[Router]:
-    return [Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
+    return [Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S,
+                   workers=f.slots)
             for _ in range(f.ranks)]
 
 
@@ -691,11 +697,10 @@ class _ScaledWorld(_World):
 
     def __init__(self, f: Fleet, lay: _Layout, job: Job, spec: HpaSpec):
         pool = [f"host-{k:03d}" for k in range(f.hosts)]
-        router = Router(pool[:job.start_hosts], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
+        router = Router(pool[:job.start_hosts], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S, workers=f.slots)
         super().__init__(f, lay, [router])
         self.job, self.spec, self.hpa, self.router = job, spec, Hpa(spec), router
         self.stalls = _Stalls(f, job.seconds + 600.0)
-        self.mean = lay.samples / max(1, len(lay.needs))
         self.pods: Dict[int, _Pod] = {k: _Pod(-job.startup_s, 0.0) for k in range(job.start_hosts)}
         self.gens = [0] * self.n
         self.busy_ws, self.marked = [0.0] * self.n, [0.0] * self.n  # busy worker-seconds so far; when counted
@@ -703,18 +708,24 @@ class _ScaledWorld(_World):
         self.scraped: Dict[int, Tuple[float, Dict[str, Optional[float]]]] = {}  # host -> (t, metric -> value)
         self.asked = [0.0] * self.n  # samples asked of each host so far (v2v_samples_asked_total)
         self.want_at, self.waking = 0.0, False
-        self.window_hosts: Optional[int] = None  # the hosts the reader's window is sized for
+        self.window_hosts: Optional[int] = None  # the hosts the reader's window is sized for (window_follows off)
         self.steps: List[Tuple[float, float]] = []
         self.syncs: List[Tuple[float, int, int, float, Optional[float]]] = []
         self._resize()
 
     def _resize(self) -> None:
-        """The reader asks ahead ``LOOKAHEAD_DECODES`` decodes per worker of the hosts it reads
-        (``job.window_follows``; else of those it read at the start)."""
-        if not self.job.window_follows and self.window_hosts is not None:
-            return
-        self.window_hosts = len(self.router.hosts)
-        self.lookahead = int(LOOKAHEAD_DECODES * len(self.router.hosts) * self.f.slots * self.mean) + self.f.step
+        """With ``job.window_follows`` off, the reader's window stays sized for the hosts it read at
+        the start, at ``AHEAD_DECODES`` per worker (:attr:`lookahead`)."""
+        if self.window_hosts is None:
+            self.window_hosts = len(self.router.hosts)
+
+    @property
+    def lookahead(self) -> int:
+        """As the base's, of the hosts the reader reads now (``job.window_follows``), else of
+        those it read at the start, at ``AHEAD_DECODES`` per worker."""
+        if self.job.window_follows:
+            return super().lookahead
+        return int(AHEAD_DECODES * (self.window_hosts or 0) * self.f.slots * self.mean) + self.f.step
 
     def _mark(self, k: int) -> None:
         self.busy_ws[k] += (self.f.slots - self.free[k]) * (self.now - self.marked[k])
@@ -820,7 +831,7 @@ class _ScaledWorld(_World):
         if k is not None:
             self._mark(k)
             self.logs[k] = [(self.now, self.busy_ws[k], self.asked[k])]
-            self.router.join(self.hosts[k], self.t0 + self.now)
+            self.router.join(self.hosts[k], self.t0 + self.now, workers=self.f.slots)
             self._resize()
             self.fresh = True
             self.settle()
@@ -884,7 +895,7 @@ def autoscale(f: Fleet, job: Job) -> Scaled:
     """Job ``job`` reading one epoch, routed, from a fleet of hosts like ``f``'s (``f.hosts``
     is ignored: the pool is the HPA's ``maxReplicas``) that the HPA of ``job.hpa`` sizes on
     its metric (or ``job.metric``), ``harness.hpa``'s model of the controller; the reader asks
-    ahead :data:`LOOKAHEAD_DECODES` decodes per worker of the hosts it reads. Pure and seeded.
+    ahead as ``Router.ahead_decodes`` says of the hosts it reads. Pure and seeded.
 
     Raises:
         ValueError: the manifest's (``HpaSpec.load``), a job out of range (naming its fields), a

@@ -92,6 +92,41 @@ def test_a_slow_owner_keeps_the_videos_needed_later_and_sheds_those_needed_befor
     assert r.capacity() == pytest.approx(33.0)
 
 
+def test_a_host_not_measured_yet_is_asked_what_measures_it_then_its_share():
+    """Before a host says its rate, a reader queues at most ``MEASURING_DECODES`` of its videos
+    per worker there (of the videos' mean samples); the rest go to measured hosts, and once it
+    says its rate it takes its share (docs/scaling.md: a slow host loaded blind held the epoch's
+    first clips)."""
+    from v2v_wire.fleet import MEASURING_DECODES
+
+    new, old = HOSTS[:2]
+    r = Router([new, old], slack=0.25, workers=2)
+    r.heard(old, 0.0, rate=8.0)
+    picks = [r.route(0, v, 2, 0.0) for v in VIDEOS[:40]]
+    assert r.backlog(new) == MEASURING_DECODES * 2 * 2  # 2 videos per worker of 2 samples
+    assert picks.count(new) == MEASURING_DECODES * 2
+    r.heard(new, 1.0, rate=8.0)
+    later = [r.route(0, v, 2, 1.0) for v in VIDEOS[60:400]]
+    assert later.count(new) > len(later) / 3  # as fast as the other: about half of what is asked now
+
+
+def test_a_video_takes_a_host_no_less_than_one_worker_makes_it_in():
+    """One worker decodes a video: a host of 8 workers at 1 sample/s each makes a 16-sample clip
+    in 16 s, not the 2 s its rate says, so a clip due in 5 s goes to a host of one worker at
+    4 samples/s."""
+    many, one = HOSTS[:2]
+    r = Router([], slack=0.25)
+    r.join(many, 0.0, rate=8.0, workers=8)
+    r.join(one, 0.0, rate=4.0, workers=1)
+    assert r.finish(many, 16) == pytest.approx(16.0)
+    assert r.finish(one, 16) == pytest.approx(4.0)
+    assert r.finish(many, 2) == pytest.approx(2.0)  # 2 samples: one worker's 2 s
+    clips = [v for v in VIDEOS if r.owner(v) == many][:3]
+    assert r.route(0, clips[0], 16, 0.0, due=5.0, position=0) == one
+    with pytest.raises(ValueError, match="workers"):
+        r.join(HOSTS[2], 0.0, workers=0)
+
+
 def test_the_rate_a_host_says_is_checked_at_the_edge():
     from v2v_wire.plan_messages import Rows, WireError
     rows = Rows(1, 0, 0, ["a.mp4#0"], [False], [{}], [], None, None, 12.5)
@@ -108,8 +143,11 @@ def test_the_queue_a_host_says_and_a_makes_route_are_checked_at_the_edge_and_old
     rows = Rows(1, 0, 0, ["a.mp4#0"], [False], [{}], [], None, None, 12.5, 40)
     assert Rows.from_wire(rows.to_wire()).queued == 40
     plan = PlanIdentity("m", "r", 0, 1)
-    info = PlanInfo(plan, None, {}, None, 7)
-    assert PlanInfo.from_wire(info.to_wire()).queued == 7
+    info = PlanInfo(plan, None, {}, None, 7, 3.5)
+    assert PlanInfo.from_wire(info.to_wire()).queued == 7 and PlanInfo.from_wire(info.to_wire()).rate == 3.5
+    for bad in (-1.0, float("inf"), "fast", True):
+        with pytest.raises(WireError, match="plan: field 'rate'"):
+            PlanInfo.from_wire({**info.to_wire(), "rate": bad})
     make = Make(3, 0, "a.mp4", (0,), ("voxels",), plan, route="tcp://b:1")
     assert Make.from_wire(make.to_wire()).route == "tcp://b:1"
     assert plan_server_message(Moved(3, "tcp://b:1").to_wire()) == Moved(3, "tcp://b:1")
@@ -123,8 +161,16 @@ def test_the_queue_a_host_says_and_a_makes_route_are_checked_at_the_edge_and_old
     for bad in ("", None, 3):
         with pytest.raises(WireError, match="'host'"):
             Moved.from_wire({**Moved(3, "h").to_wire(), "host": bad})
-    old = [{k: v for k, v in m.to_wire().items() if k not in ("queued", "route")} for m in (rows, info, make)]
+    assert PlanInfo.from_wire(PlanInfo(plan, None, {"feed": {"workers": 6}}).to_wire()).workers == 6
+    assert info.workers == 1  # not said: one
+    for bad in (0, 257, 2.5, "8", True, [1]):
+        with pytest.raises(WireError, match="'stream.feed.workers'"):
+            PlanInfo.from_wire({**info.to_wire(), "stream": {"feed": {"workers": bad}}})
+    with pytest.raises(WireError, match="'stream.feed.workers'"):
+        PlanInfo.from_wire({**info.to_wire(), "stream": {"feed": "many"}})
+    old = [{k: v for k, v in m.to_wire().items() if k not in ("queued", "route", "rate")} for m in (rows, info, make)]
     assert Rows.from_wire(old[0]).queued is None and PlanInfo.from_wire(old[1]).queued is None
+    assert PlanInfo.from_wire(old[1]).rate is None
     assert Make.from_wire(old[2]).route is None  # an older reader's make: made where asked
 
 
@@ -278,7 +324,7 @@ def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
 
     m = Manifest.of(slots)
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
-    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, workers={}, ahead=None, links={},
+    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, ahead=None, links={},
                             like=None, endpoint=",".join(hosts), left_out={}, out_for_pass={}, changed={},
                             last_served=None, stream=stream, join=lambda ep, info, now: None)
     sent = []
@@ -332,10 +378,29 @@ def test_a_fleet_pass_whose_every_host_left_asks_again_once_another_joins():
     read.ask_window(0.0)
     read.router.leave("h")
     read.rescue(1.0)  # no host: the makes wait
-    assert [h for h, _ in sent] == ["h"]
+    makes = [(h, m) for h, m in sent if m != "plan_ask"]  # a host whose rate it does not know is pinged too
+    assert [h for h, _ in makes] == ["h"]
     read.router.join("g", 2.0)
     read.rescue(2.0)
-    assert [(h, m.video, m.ordinals) for h, m in sent] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]
+    makes = [(h, m) for h, m in sent if m != "plan_ask"]
+    assert [(h, m.video, m.ordinals) for h, m in makes] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]
+
+
+def test_a_reader_pings_a_host_whose_rate_it_does_not_know_and_weighs_it_once_told():
+    """A host other readers' work measured says its rate in its answer to a ping (``PlanInfo.rate``):
+    a reader that asked it nothing learns it, counts it at ``AHEAD_DECODES`` in its window and
+    stops pinging it; one not measured yet is pinged once a ping interval."""
+    from v2v_wire.fleet import AHEAD_DECODES, MEASURING_DECODES
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import PlanInfo
+
+    r = Router(HOSTS[:2], hedge_s=10.0, workers=4)
+    assert r.pings(0.0) == HOSTS[:2] and r.pings(1.0) == []
+    assert r.ahead_decodes() == 2 * 4 * MEASURING_DECODES
+    info = PlanInfo.from_wire(PlanInfo(PlanIdentity("m", "r", 0, 1), None, {}, queued=0, rate=6.5).to_wire())
+    r.heard(HOSTS[0], 0.1, info.rate, info.queued)
+    assert r.pings(2.6) == [HOSTS[1]]  # measured: not pinged again
+    assert r.ahead_decodes() == 4 * AHEAD_DECODES + 4 * MEASURING_DECODES
 
 
 def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspect_nor_failed_over():
@@ -347,6 +412,8 @@ def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspec
     from v2v_wire.plan_messages import PlanInfo
 
     r = Router(HOSTS[:2], hedge_s=10.0)
+    for h in HOSTS[:2]:
+        r.heard(h, 0.0, rate=4.0)
     v = VIDEOS[0]
     owner, nxt = rank_hosts(v, HOSTS[:2])
     assert r.route(0, v, 2, 0.0) == owner and r.pings(1.0) == []
@@ -365,8 +432,9 @@ def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspec
         other = next(h for h in HOSTS[:2] if h != first)
         read.router.heard(other, 0.0, queued=400)  # busy too: no idle host to copy the video to
         for t in (3.0, 6.0, 9.0, 12.0):
+            n = len(sent)
             read.rescue(t)
-            if answer and sent[-1] == (first, "plan_ask"):
+            if answer and (first, "plan_ask") in sent[n:]:
                 plan = read.fleet.plan
                 read.receive(first, PlanInfo(plan, None, {}, None, 400), [], t + 0.1)
         return first, [(h, m) for h, m in sent if m != "plan_ask"]
@@ -377,14 +445,20 @@ def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspec
     assert {h for h, _ in makes} == set(HOSTS[:2])  # silent 12 s: its video asked of the next host
 
 
-def test_a_fleet_pass_asks_ahead_for_the_hosts_serving_now_not_those_it_began_with():
+def test_a_fleet_pass_asks_ahead_for_the_hosts_serving_now_and_more_of_each_once_it_is_measured():
     """A job started on 1 host that grows to 2 mid-pass asks ahead for both (docs/scaling.md: a
-    window sized once a pass left a grown fleet idle while the job waited on long clips)."""
+    window sized once a pass left a grown fleet idle while the job waited on long clips); a host
+    that has not said its rate counts at ``MEASURING_DECODES`` per worker, one that has at
+    ``AHEAD_DECODES``."""
+    from v2v_wire.fleet import AHEAD_DECODES, MEASURING_DECODES
+
     read, _ = _fleet_pass({"a.mp4": 2}, ["h"], others=["g"])
     one = read.ahead
-    read.router.join("g", 1.0)
-    read.fleet.workers.update(h=1, g=3)
+    read.router.join("g", 1.0, workers=3)
     assert read.ahead == 4 * one
+    for h in ("h", "g"):
+        read.router.heard(h, 2.0, rate=5.0)
+    assert read.ahead == 4 * one * AHEAD_DECODES // MEASURING_DECODES
 
 
 def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_placed_it():

@@ -109,11 +109,12 @@ class Pass:
 
     @property
     def ahead(self) -> int:
-        """Positions the window spans: the fleet's (``fleet.ahead``), else 20 windows' samples per
-        worker of the hosts serving now (a fleet that grows mid-pass is asked ahead for all)."""
+        """Positions the window spans: the fleet's (``fleet.ahead``), else the router's decodes ahead
+        (``Router.ahead_decodes``) of two windows' samples each, of the hosts serving now (a fleet
+        that grows mid-pass is asked ahead for all; a host's share grows once it is measured)."""
         if self.fleet.ahead is not None:
             return self.fleet.ahead
-        return 10 * (sum(self.fleet.workers.get(h, 1) for h in self.router.hosts) or 1) * self.kpw * 2
+        return (self.router.ahead_decodes() or 1) * self.kpw * 2
 
     # ------------------------------------------------------------------ asking
     def add(self, step: int, fetch: Fetch) -> None:
@@ -317,8 +318,8 @@ class Pass:
         Raises:
             BrokenPeer: rows whose arrays cannot be read.
             PlanServerError: every host refused a make of the video."""
-        if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its queue
-            self.router.heard(ep, now, queued=msg.queued)
+        if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its rate and queue
+            self.router.heard(ep, now, msg.rate, msg.queued)
             self.fleet.join(ep, msg, now)
             return
         if isinstance(msg, Moved):

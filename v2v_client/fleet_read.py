@@ -284,7 +284,6 @@ class Fleet:
         self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
-        self.workers: Dict[str, int] = {}
         self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
         self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
         self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
@@ -329,8 +328,7 @@ class Fleet:
         link = self._link(ep)
         codecs = info.stream.get("codecs", ())
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)
-        self.workers[ep] = int((info.stream.get("feed") or {}).get("workers") or 1)
-        self.router.join(ep, now, self.rates.get(ep))
+        self.router.join(ep, now, info.rate or self.rates.get(ep), info.workers)
 
     def leave_out(self, ep: str, why: str) -> None:
         """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a

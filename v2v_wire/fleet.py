@@ -27,7 +27,13 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   whose draw (:func:`spill_draw`) is at least ``x``, none past ``1 + slack``; else the video goes
   to the host that would make it first. A host that falls behind sheds new videos to the next
   hosts of their rankings until it catches up, and a slow host is given the videos needed
-  later, not those the reader is about to wait on.
+  later, not those the reader is about to wait on. A video takes a host at least what one of
+  its workers takes to make it (one worker decodes a video).
+* **A host is measured before it is loaded.** A host that has not said its rate yet is asked
+  for :data:`MEASURING_DECODES` videos per worker by each reader (of its slice of each video), and the reader's
+  window counts it at that (:meth:`Router.ahead_decodes`); its share grows to the window's
+  :data:`AHEAD_DECODES` once its first decodes measure it. A slow host loaded blind holds
+  the epoch's first clips, which the head then waits on one by one.
 * **The hosts' view, not the reader's.** A job has several readers (ranks times DataLoader
   workers), and several jobs may read one fleet; each reader routes on its own, with no
   coordinator. So each host says in every answer, and in its answer to a ping (a ``plan_ask``,
@@ -61,7 +67,7 @@ from typing import Collection, Dict, Iterable, List, Mapping, Optional, Sequence
 import numpy as np
 
 __all__ = ["host_key", "video_key", "rank_hosts", "weight_step", "spill_draw", "RateMeter", "Router",
-           "PINGS_PER_HEDGE"]
+           "PINGS_PER_HEDGE", "AHEAD_DECODES", "MEASURING_DECODES"]
 
 _MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
 #: Weights move in steps of this factor (a quarter octave): finer steps follow speed closer but
@@ -72,6 +78,18 @@ SPILL_SALT = 0x5DEECE66D
 #: Pings a silent host is sent before it is suspect (``hedge_s`` apart over this): one lost or
 #: late answer does not make a busy host suspect.
 PINGS_PER_HEDGE = 4
+#: Decodes per worker a reader asks ahead of a host that said its rate: a clip of many windows
+#: decodes for many times the mean, and the steps after it must find their clips made meanwhile
+#: (6 gave 0.72 of the hosts' rate over 10-90 % of the epoch at 128 simulated hosts, 10 gave
+#: 0.97: docs/scaling.md).
+AHEAD_DECODES = 10
+#: Videos per worker a reader asks at most of a host that has not said its rate yet
+#: (:meth:`Router.route`), and decodes it asks ahead of it (:meth:`Router.ahead_decodes`): enough to
+#: keep its workers busy until its first decodes measure it. Asked a full window's share before
+#: that, a host of a third of the mean speed held a third of a minute of the epoch's first clips,
+#: which the head then waited on one by one (128 simulated hosts of sigma 0.5: 0.60 of the hosts'
+#: rate over the epoch, 0.87 with this bound: docs/scaling.md).
+MEASURING_DECODES = 2
 
 
 def _key(text: str) -> int:
@@ -181,6 +199,7 @@ class _Host:
     load: int = 0  # the samples queued, summed
     heard: float = 0.0  # when it last answered anything, a ping included (or joined)
     step: Optional[int] = None  # weight step (None: not measured yet)
+    workers: int = 1  # its decode workers (its stream info's ``feed.workers``), each making one video at a time
     others: float = 0.0  # samples it said other readers have queued on it (its queue less this reader's)
     said: float = 0.0  # when it said it
     pinged: float = float("-inf")  # when this reader last pinged it
@@ -197,13 +216,15 @@ class Router:
         patience_s: seconds a reader waits on a video before it asks a copy (:meth:`copy`): how
             late a video's last host may make it and keep it (:meth:`route`).
         now: the clock's reading at start.
+        workers: each of ``hosts``'s decode workers (:meth:`join`).
 
     Raises:
-        ValueError: ``slack`` or ``hedge_s`` <= 0, ``patience_s`` < 0, or a host named twice.
+        ValueError: ``slack`` or ``hedge_s`` <= 0, ``patience_s`` < 0, a host named twice, or
+            ``workers`` < 1.
     """
 
     def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0,
-                 patience_s: float = 1.0):
+                 patience_s: float = 1.0, workers: int = 1):
         if slack <= 0 or hedge_s <= 0 or patience_s < 0:
             raise ValueError(f"slack and hedge_s must be > 0 and patience_s >= 0, got {slack}, {hedge_s} and "
                              f"{patience_s}")
@@ -214,19 +235,22 @@ class Router:
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
         self._load = 0
+        self._routed = [0, 0]  # videos routed, their samples summed: :meth:`per_video`
         for h in hosts:
-            self.join(h, now)
+            self.join(h, now, workers=workers)
 
     # ------------------------------------------------------------------ the fleet
-    def join(self, host: str, now: float, rate: Optional[float] = None) -> None:
-        """``host`` serves from ``now`` on; ``rate``: the samples/s it said before (a reader's
-        earlier pass), which weighs it until it says anew.
+    def join(self, host: str, now: float, rate: Optional[float] = None, workers: int = 1) -> None:
+        """``host`` serves from ``now`` on with ``workers`` decode workers; ``rate``: the
+        samples/s it said before (a reader's earlier pass), which weighs it until it says anew.
 
         Raises:
-            ValueError: a host already in the fleet."""
+            ValueError: a host already in the fleet, or ``workers`` < 1."""
         if host in self.hosts:
             raise ValueError(f"host {host!r} is in the fleet already")
-        self.hosts[host] = _Host(heard=now, rate=rate)
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"host {host!r}: workers must be an int >= 1, got {workers!r}")
+        self.hosts[host] = _Host(heard=now, rate=rate, workers=workers)
 
     def leave(self, host: str) -> List[Tuple[int, str]]:
         """``host`` is gone: returns the (epoch, video) it held and no other host was asked for,
@@ -280,9 +304,14 @@ class Router:
         crossed by a few samples' chance would move a video off its warm cache (a small fleet's
         share of a reader's queue is a few videos), and a host that falls behind falls behind its
         deadlines too. Readers that heard the same queues pick the same host. None when no host
-        is left.
+        is left. A host that has not said its rate is past its bounds once this reader's queue
+        there and these samples pass :data:`MEASURING_DECODES` of its videos per worker
+        (:meth:`measuring_samples`); where every host is past them, the one that would make the
+        video first of those within that, else of all.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
+        self._routed[0] += 1
+        self._routed[1] += samples
         weights = self.weights()
         ranking = [h for h in rank_hosts(video, list(self.hosts), weights)
                    if h not in exclude and not self.suspect(h, now)]
@@ -295,7 +324,12 @@ class Router:
         def in_time(h: str, late_s: float = 0.0) -> bool:
             return due is None or self.finish(h, samples, position, now) <= (1 + self.slack) * due + late_s
 
+        def measuring(h: str) -> bool:  # not said its rate, and asked what measures it already
+            return self.hosts[h].rate is None and self.hosts[h].load + samples > self.measuring_samples(h)
+
         def past(h: str) -> float:  # how far past its bounds, in slacks: 0 at its share and its due
+            if measuring(h):
+                return float("inf")
             load = (backlog[h] + samples) / (total * weights[h] / weight) - 1
             late = float("inf") if due is not None and due <= 0 else \
                 0.0 if due is None else self.finish(h, samples, position, now) / due - 1
@@ -307,9 +341,26 @@ class Router:
             keep = dict(zip(ranking, spill_draw(video, ranking)))
             pick = next((h for h in ranking if keep[h] >= past(h)), None)
         if pick is None:
-            pick = min(ranking, key=lambda h: self.finish(h, samples, position, now))
+            pick = min([h for h in ranking if not measuring(h)] or ranking,
+                       key=lambda h: self.finish(h, samples, position, now))
         self.ask(pick, epoch, video, samples, now, position)
         return pick
+
+    def per_video(self) -> float:
+        """Samples a video routed so far asked, on average (2 before any: a WebVid clip's windows)."""
+        return self._routed[1] / self._routed[0] if self._routed[0] else 2.0
+
+    def measuring_samples(self, host: str) -> float:
+        """Samples this reader may queue on ``host`` while it has not said its rate:
+        :data:`MEASURING_DECODES` videos per worker of :meth:`per_video` samples (each reader of
+        a job asks its slice of each video, so the readers together ask about that many videos)."""
+        return MEASURING_DECODES * self.hosts[host].workers * self.per_video()
+
+    def ahead_decodes(self) -> int:
+        """Decodes a reader asks ahead of the fleet: :data:`AHEAD_DECODES` per worker of each host
+        that said its rate, :data:`MEASURING_DECODES` per worker of each that has not (its
+        window grows as the hosts' first decodes measure them)."""
+        return sum(s.workers * (AHEAD_DECODES if s.rate else MEASURING_DECODES) for s in self.hosts.values())
 
     def arbiter(self, video: str, now: float) -> Optional[str]:
         """The host that says where ``video`` is made: the first of its ranking that is not
@@ -345,17 +396,20 @@ class Router:
         return max(0.0, s.others - (now - s.said) * (s.rate or self.mean_rate() or 1.0))
 
     def finish(self, host: str, samples: int, position: Optional[int] = None, now: Optional[float] = None) -> float:
-        """Seconds ``host`` would take to make ``samples`` more at ``position`` and its queued
-        samples it makes first, at the rate it said (a host that said none yet: the fleet's mean,
-        else 1 sample/s): this reader's at earlier positions (all, for ``position`` None), and
-        the other readers' (:meth:`backlog`) in the same proportion (their positions are not
-        said; all of them while this reader queued nothing there)."""
+        """Seconds ``host`` would take to make ``samples`` more of one video at ``position`` and
+        its queued samples it makes first, at the rate it said (a host that said none yet: the
+        fleet's mean, else 1 sample/s): this reader's at earlier positions (all, for ``position``
+        None), and the other readers' (:meth:`backlog`) in the same proportion (their positions
+        are not said; all of them while this reader queued nothing there); and no sooner than one
+        of its workers makes the ``samples`` (one worker decodes a video: a clip of many windows
+        on a slow host of many workers takes many times what the host's rate says)."""
         s = self.hosts[host]
         first = s.load if position is None else sum(n for ev, n in s.queued.items() if s.at.get(ev, 0) <= position)
         others = self._others(s, now)
         if others:
             others *= first / s.load if s.load else 1.0
-        return (first + others + samples) / (s.rate or self.mean_rate() or 1.0)
+        rate = s.rate or self.mean_rate() or 1.0
+        return max(first + others + samples, samples * s.workers) / rate
 
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
@@ -393,13 +447,15 @@ class Router:
             s.others, s.said = max(0.0, float(queued) - s.load), now
 
     def pings(self, now: float) -> List[str]:
-        """The hosts to ping at ``now`` (a ``plan_ask``; its answer is :meth:`heard`): those
-        holding this reader's work that answered nothing for :attr:`ping_s` and were not pinged
-        since. A host whose workers are busy with other readers' work answers a ping from its
-        server loop, and so is never taken for silent (:meth:`suspect`)."""
+        """The hosts to ping at ``now`` (a ``plan_ask``; its answer is :meth:`heard`), each at most
+        every :attr:`ping_s`: those holding this reader's work that answered nothing for
+        :attr:`ping_s`, and those whose rate this reader does not know (one that other readers'
+        work measured is then weighed and asked ahead for as measured: :meth:`ahead_decodes`). A
+        host whose workers are busy with other readers' work answers a ping from its server loop,
+        and so is never taken for silent (:meth:`suspect`)."""
         out = []
         for h, s in self.hosts.items():
-            if s.queued and now - s.heard >= self.ping_s and now - s.pinged >= self.ping_s:
+            if (s.rate is None or s.queued and now - s.heard >= self.ping_s) and now - s.pinged >= self.ping_s:
                 s.pinged = now
                 out.append(h)
         return out

@@ -63,6 +63,9 @@ MANIFEST_PART = 4096
 MAX_MAKE_PATH, MAX_MAKE_SAMPLES = 1024, 1024
 #: Longest instance name a server says (``PlanInfo.instance``): a UUID's 32 hex digits with room.
 MAX_INSTANCE = 64
+#: Most decode workers a server runs (``v2v-serve --workers``; a typo like 2000 is an error, not a
+#: fork bomb), and so says in its stream info (:attr:`PlanInfo.workers`).
+MAX_WORKERS = 256
 #: Longest host name a make's ``route`` or a ``moved`` names (an endpoint, ``tcp://host:port``).
 MAX_HOST_NAME = 512
 _MAX_INT = 2 ** 62
@@ -73,6 +76,18 @@ def _int(h: dict, name: str, lo: int = 0, hi: int = _MAX_INT) -> int:
     if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
         raise WireError(f"{h.get('type')}: field {name!r} must be an int in {lo}..{hi}, got {v!r:.80}")
     return v
+
+
+def _optional_rate(h: dict, what: str) -> Optional[float]:
+    """Field ``rate`` of message ``what``: a finite number >= 0, or nil.
+
+    Raises:
+        WireError: anything else, naming the message and the field."""
+    rate = h.get("rate")
+    if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0
+                             or rate == float("inf")):
+        raise WireError(f"{what}: field 'rate' must be a finite number >= 0 or nil")
+    return None if rate is None else float(rate)
 
 
 def _optional_int(h: dict, name: str) -> Optional[int]:
@@ -120,6 +135,12 @@ class PlanInfo:
         queued: the samples every reader's makes ask of the server and it has not made (None:
             not said, an older server): a fleet's reader pings a host with a ``plan_ask`` and
             routes by this queue (``v2v_wire.fleet.Router.heard``).
+        rate: the server's decode capacity in samples/s, as :class:`Rows` says it (None: not
+            measured yet, or an older server): a reader that joins a fleet at work, or that
+            pings a host, knows it before asking it anything.
+
+    Its ``stream``'s ``feed.workers``, where said, is an int from 1 to :data:`MAX_WORKERS`
+    (:attr:`workers`).
     """
 
     plan: PlanIdentity
@@ -127,10 +148,17 @@ class PlanInfo:
     stream: dict = field(default_factory=dict)
     instance: Optional[str] = None
     queued: Optional[int] = None
+    rate: Optional[float] = None
+
+    @property
+    def workers(self) -> int:
+        """The server's decode workers, as its stream's ``feed.workers`` says (1 where not said)."""
+        return int((self.stream.get("feed") or {}).get("workers") or 1)
 
     def to_wire(self) -> dict:
         return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
-                "changes": dict(self.plan.changes), "instance": self.instance, "queued": self.queued}
+                "changes": dict(self.plan.changes), "instance": self.instance, "queued": self.queued,
+                "rate": self.rate}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -144,12 +172,18 @@ class PlanInfo:
         if not isinstance(changes, dict) or not all(isinstance(k, str) and isinstance(v, str)
                                                     for k, v in changes.items()):
             raise WireError("plan: field 'changes' must be a map of strings to strings")
+        feed = h["stream"].get("feed", {})
+        workers = feed.get("workers") if isinstance(feed, dict) else None
+        if not isinstance(feed, dict) or workers is not None and (
+                isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS):
+            raise WireError(f"plan: field 'stream.feed.workers' must be nil or an int from 1 to {MAX_WORKERS}, "
+                            f"got {workers if isinstance(feed, dict) else feed!r:.80}")
         instance = h.get("instance")
         if instance is not None and (not isinstance(instance, str) or not 0 < len(instance) <= MAX_INSTANCE):
             raise WireError(f"plan: field 'instance' must be nil or a string of 1 to {MAX_INSTANCE} characters, "
                             f"got {instance!r:.80}")
         return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"], instance,
-                   _optional_int(h, "queued"))
+                   _optional_int(h, "queued"), _optional_rate(h, "plan"))
 
 
 @dataclass(frozen=True)
@@ -347,12 +381,8 @@ class Rows:
             raise WireError(f"rows: field 'params' must be {n} maps")
         if not isinstance(arrays, list):
             raise WireError("rows: field 'arrays' must be a list of array specs")
-        rate = h.get("rate")
-        if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0
-                                 or rate == float("inf")):
-            raise WireError("rows: field 'rate' must be a finite number >= 0 or nil")
         return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays,
-                   _optional_int(h, "samples"), _optional_int(h, "windows"), None if rate is None else float(rate),
+                   _optional_int(h, "samples"), _optional_int(h, "windows"), _optional_rate(h, "rows"),
                    _optional_int(h, "queued"))
 
 

@@ -25,14 +25,13 @@ from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import open_source
 from v2v_server.sources.store import StoreSettings
 from v2v_server.sources.video_tables import TABLE_FORMATS, TableSettings, table_format
+from v2v_wire.plan_messages import MAX_WORKERS
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 from v2v_wire.push_names import TAKEN, server_key_problem
 
 __all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard",
            "source_from_config"]
 
-#: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).
-MAX_WORKERS = 256
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
 
 

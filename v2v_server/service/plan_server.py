@@ -202,7 +202,8 @@ class PlanServer:
             return
         if isinstance(msg, PlanAsk):
             self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance,
-                                       self.scheduler.queued()).to_wire())
+                                       self.scheduler.queued(),
+                                       self.metrics.capacity(self.cfg.workers, time.monotonic())).to_wire())
             return
         if isinstance(msg, ManifestAsk):
             self._send(ident, self._manifest_part(msg.offset).to_wire())
