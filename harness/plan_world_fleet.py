@@ -147,7 +147,14 @@ class Net:
     def info(self, host: Host) -> PlanInfo:
         """What ``host`` serves (``PlanServer``'s answer to ``plan_ask``)."""
         return PlanInfo(self.identity(host), self.world.samples_of(host, 0),
-                        dict(STREAM, feed={"workers": len(host.workers)}), queued=host.scheduler.queued())
+                        dict(STREAM, feed={"workers": len(host.workers)}), queued=host.scheduler.queued(),
+                        rate=self.rate(host))
+
+    @staticmethod
+    def rate(host: Host) -> Optional[float]:
+        """The decode capacity ``host`` says (samples/s), as a server measures it: its workers at a
+        sample a tick, once it has made a sample (None before)."""
+        return len(host.workers) / DT if host.scheduler.samples_made else None
 
     def post(self, to, what) -> None:
         """Queue ``what`` for ``to`` (a host's name, or a reader's number), unless lost."""
@@ -246,7 +253,7 @@ class Net:
         head = Rows(o.request, o.epoch, 0, [r.key.sample_id(kpw) for r in rows], [r.padding for r in rows],
                     [{} if r.sample is not None else {"padding": r.reason} for r in rows], specs,
                     self.world.samples_of(host, o.epoch), host.scheduler.slots.windows.get(o.video),
-                    queued=host.scheduler.queued())
+                    rate=self.rate(host), queued=host.scheduler.queued())
         self.post(o.client[0], (host.name, head.to_wire(), [f.tobytes() for f in frames]))
 
 
