@@ -86,6 +86,8 @@ def test_before_any_batch_the_checkpoint_is_the_streams_loaded_state(server):
 
 def test_a_server_gone_mid_read_reaches_the_loop_as_the_streams_own_error():
     with local_server(None, workers=1, batch_size=4, config=load_config(None, RECIPE)) as endpoint:
+        # the worker's start and first decode, under whatever load, before the 3 s that the gone server is given
+        next(iter(V2VStreamDataset(endpoint, 4, outputs=("voxels",), timeout_s=120.0)))
         ahead = ReadAhead(PlanEpochs(V2VStreamDataset(endpoint, 4, outputs=("voxels",), timeout_s=3.0, retry_s=1.0)))
         it = iter(ahead)
         next(it)
