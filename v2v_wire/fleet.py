@@ -88,7 +88,7 @@ AHEAD_DECODES = 10
 #: keep its workers busy until its first decodes measure it. Asked a full window's share before
 #: that, a host of a third of the mean speed held a third of a minute of the epoch's first clips,
 #: which the head then waited on one by one (128 simulated hosts of sigma 0.5: 0.60 of the hosts'
-#: rate over the epoch, 0.87 with this bound: docs/scaling.md).
+#: rate over the epoch, 0.83 with this bound: docs/scaling.md).
 MEASURING_DECODES = 2
 
 
