@@ -983,6 +983,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--ranks", type=int, default=Fleet.ranks,
                     help="readers, each with its own router and its slice of every step (routed only)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="run seeds --seed .. --seed + N - 1 and print each split's mean, with the share's range: "
+                         "one seed's whole-epoch share moves by several hundredths with the corpus's and the "
+                         "speeds' draws (docs/scaling.md)")
     ap.add_argument("--json", default=None, help="also write the results here")
     ap.add_argument("--padding", default=None, metavar="VIDEOS,...", type=_sizes,
                     help="print only the static shards' padding for these corpus sizes (2, 8, 32, 128 shards)")
@@ -1001,7 +1005,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if problem:
         print(f"harness.fleet_sim: --json {a.json}: {problem}", file=sys.stderr)
         return 2
-    for name in ("hosts", "videos", "slots"):
+    for name in ("hosts", "videos", "slots", "seeds"):
         if getattr(a, name) < 1:
             print(f"harness.fleet_sim: --{name} must be >= 1, got {getattr(a, name)}", file=sys.stderr)
             return 2
@@ -1018,15 +1022,23 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
-    rows = [simulate(f, "routed"), simulate(replace(f, ranks=1), "static")]  # static: one reader
+    runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
+            for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
+    seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
-          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading")
+          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading, {seeds}")
     print(f"{'split':<8} {'samples/s':>10} {'capacity':>9} {'share':>6} {'10-90 %':>8} {'decodes/clip':>13} "
-          f"{'padding':>8}")
-    for r in rows:
-        print(f"{r.mode:<8} {r.rate:>10.1f} {r.capacity:>9.1f} {r.share:>6.3f} {r.steady_share:>8.3f} "
-              f"{r.decodes:>13.3f} {1 - r.samples / r.positions:>8.1%}")
+          f"{'padding':>8}" + (f" {'share min-max':>14}" if a.seeds > 1 else ""))
+    for col in zip(*runs):
+        def mean(x, col=col):
+            return sum(x(r) for r in col) / len(col)
+        shares = [r.share for r in col]
+        print(f"{col[0].mode:<8} {mean(lambda r: r.rate):>10.1f} {mean(lambda r: r.capacity):>9.1f} "
+              f"{mean(lambda r: r.share):>6.3f} {mean(lambda r: r.steady_share):>8.3f} "
+              f"{mean(lambda r: r.decodes):>13.3f} {mean(lambda r: 1 - r.samples / r.positions):>8.1%}"
+              + (f" {min(shares):>6.3f}-{max(shares):.3f}" if a.seeds > 1 else ""))
     if a.json:
-        write_whole(a.json, json.dumps({"fleet": asdict(f), "results": [
-            {k: v for k, v in dict(asdict(r), share=r.share, steady_share=r.steady_share).items() if k != "made_by"} for r in rows]}, indent=1))
+        write_whole(a.json, json.dumps({"fleet": asdict(f), "seeds": a.seeds, "results": [
+            {k: v for k, v in dict(asdict(r), share=r.share, steady_share=r.steady_share, seed=a.seed + i).items()
+             if k != "made_by"} for i, rows in enumerate(runs) for r in rows]}, indent=1))
     return 0

@@ -263,6 +263,27 @@ def test_the_simulator_is_a_function_of_its_seed():
         simulate(f, "push")
 
 
+def test_the_simulator_over_several_seeds_prints_each_splits_mean_and_the_shares_range(tmp_path, capsys):
+    """``--seeds N``: one seed's whole-epoch share moves by several hundredths with its draws, so a
+    rule is judged over several; the table's share is the seeds' mean, beside their range, and
+    --json holds each seed's results."""
+    import json
+
+    from harness.fleet_sim import main
+    out = tmp_path / "sim.json"
+    assert main(["--hosts", "4", "--videos", "300", "--seed", "5", "--seeds", "2", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    results = json.loads(out.read_text())["results"]
+    assert sorted({r["seed"] for r in results}) == [5, 6]
+    for mode in ("routed", "static"):
+        shares = [r["share"] for r in results if r["mode"] == mode]
+        assert shares == [simulate(Fleet(hosts=4, videos=300, seed=s), mode).share for s in (5, 6)]
+        row = next(line.split() for line in printed.splitlines() if line.startswith(mode))
+        assert float(row[3]) == pytest.approx(sum(shares) / 2, abs=6e-4)
+        assert row[-1] == f"{min(shares):.3f}-{max(shares):.3f}"
+    assert main(["--seeds", "0"]) == 2
+
+
 def test_two_hosts_one_at_a_third_of_its_speed_routed_make_most_of_their_sum_static_shards_half():
     f = Fleet(hosts=2, videos=1500, spread=0.0, slow=(1, 1 / 3), stall_s=0.0)
     routed, static = simulate(f, "routed"), simulate(f, "static")
