@@ -108,6 +108,19 @@ class Pending:
     epoch: int
     start: int
     stop: int
+    decided: Optional[List[Optional[SampleKey]]] = field(default=None, repr=False, compare=False)
+
+    def keys(self, plan: EpochPlan) -> List[Optional[SampleKey]]:
+        """The keys of its positions ``plan`` (its epoch's) decided, from ``start`` on (None past the
+        epoch's end); kept once every one is (what a plan says of a position never changes), so a
+        fetch waiting looks its keys up once, not at each turn."""
+        if self.decided is not None:
+            return self.decided
+        stop = self.stop if plan.complete else min(self.stop, plan.known)
+        keys = [plan.key(p) for p in range(self.start, stop)]
+        if stop == self.stop:
+            self.decided = keys
+        return keys
 
 
 @dataclass
@@ -494,8 +507,7 @@ class PlanScheduler:
         rows = []
         if not plan.complete and f.stop > plan.known:
             return None  # not decided yet
-        for p in range(f.start, f.stop):
-            key = plan.key(p)
+        for p, key in zip(range(f.start, f.stop), f.keys(plan)):
             if key is None:
                 rows.append(Row(p, None))
                 continue
@@ -691,9 +703,8 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     for f in s.pending:
         plan = s.plan(f.epoch)
         heads.setdefault(f.epoch, []).append(f.stop)
-        for p in range(f.start, min(f.stop, plan.known)):
-            key = plan.key(p)
-            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+        for p, key in zip(range(f.start, f.stop), f.keys(plan)):
+            if key is not None and (f.epoch, key) not in store and (f.epoch, key) not in failed:
                 ek = (f.epoch, key.video)
                 waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
         if not plan.complete and f.stop > plan.known:
@@ -743,7 +754,7 @@ def trim(s: "PlanScheduler", now: float) -> None:
     named = set()
     for f in s.pending:
         plan = s.plan(f.epoch)
-        named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
+        named.update((f.epoch, key) for key in f.keys(plan) if key is not None)
     # what a pending fetch names is a batch asked now, not made ahead: the bound is on the rest
     over -= sum(1 for sk in named if sk in s.store and sk not in s.fetched)
     if over <= 0:
