@@ -373,3 +373,38 @@ def test_a_bad_seed_range_is_one_usage_error_naming_the_option(capsys):
         assert e.value.code == 2
         err = capsys.readouterr().err
         assert "argument --seeds" in err and repr(bad) in err and "Traceback" not in err
+
+
+def _read_as_job(host, readers, epoch, batch, start=0, stop=None):
+    """Samples of ``epoch`` made per sample read while ``readers`` processes of one job read
+    ``start .. stop - 1`` of it, each its own client (its connection) and every ``readers``-th
+    batch, two fetches in flight each, reader ``r`` taking its answers every ``1 + r % 3`` ticks
+    (the heads spread)."""
+    stop, made = host.total if stop is None else stop, host.made.get(epoch, 0)
+    nxt = {r: start + r * batch for r in range(readers)}
+    waiting, turn = {}, 0
+    while any(p < stop for p in nxt.values()) or waiting:
+        turn += 1
+        for r in range(readers):
+            while turn % (1 + r % 3) == 0 and sum(1 for c in waiting.values() if c == r) < 2 and nxt[r] < stop:
+                host.request += 1
+                host.s.fetch(("reader", r), host.request, epoch, nxt[r], min(stop, nxt[r] + batch), host.now)
+                waiting[host.request] = r
+                nxt[r] += readers * batch
+        for f, _ in host.tick():
+            waiting.pop(f.request, None)
+    return (host.made.get(epoch, 0) - made) / (stop - start)
+
+
+@pytest.mark.parametrize("readers", [3, 6])
+def test_the_readers_of_one_job_find_what_the_others_read_not_made_again(readers):
+    """Each reader of a job (a rank, a DataLoader worker) has its own connection and its own head,
+    and reads every ``readers``-th batch: what lies ahead of the slowest head was read by the
+    others. Decode-ahead for a head skips what a reader was answered, and a decode skips it too,
+    so nothing is made again for the slow heads (1.1-1.2 made a sample read where it was)."""
+    for batch in (1, 3):
+        host = _Host(videos=20, per=3, workers=3)
+        host.s = PlanScheduler(host.m, 0, 16, ("voxels",), lookahead=16, keep_samples=0)
+        made = [_read_as_job(host, readers, epoch, batch) for epoch in range(2)]
+        assert max(made) <= 1.02, (batch, made)
+

@@ -14,6 +14,9 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   first ones), while the samples made ahead and not yet fetched, with those the running tasks
   will make, stay within ``lookahead`` samples: the fetches to come find their samples made, the
   workers stay busy across an epoch's end, and a server holds a bounded number of samples.
+  Each reader (a rank, a DataLoader worker: a connection of its own) has its own head and reads
+  its own items: what lies ahead of one head another reader was answered (:meth:`Heads.read`) is
+  neither made ahead for it nor made by a decode again.
 * **Hedging.** A task that sent nothing for ``hedge_s`` while a fetch waits on it is handed to
   a second idle worker too; a sample's content is a function of (seed, epoch, id), so the first
   copy of each sample wins and the other is dropped.
@@ -91,6 +94,9 @@ HEADS_KEPT = 64
 #: :data:`HEAD_IDLE_S`: a sample only idle heads reach is one no reader needs soon.
 HEAD_IDLE_INTERVALS = 4
 HEAD_IDLE_S = 2.0
+#: Fetches answered a head keeps the ranges of (:meth:`Heads.read`): a reader's items ahead of
+#: the slowest reader of its job (prefetched, a step or two apart).
+ANSWERED_KEPT = 8
 
 
 
@@ -165,6 +171,7 @@ class Head:
     stop: int
     at: float
     interval: float = 0.0
+    answered: List[Tuple[int, int]] = field(default_factory=list)  # its latest fetches answered: (start, stop)
 
 
 class Heads:
@@ -194,11 +201,21 @@ class Heads:
         for k in [k for k in self.heads if k[0] == client]:
             del self.heads[k]
 
-    def answered(self, client: Hashable, epoch: int, now: float) -> None:
-        """A fetch of ``client`` in ``epoch`` was answered at ``now``: its idle time counts from here."""
+    def answered(self, client: Hashable, epoch: int, now: float, start: int = 0, stop: int = 0) -> None:
+        """A fetch of ``client`` in ``epoch`` was answered at ``now`` with positions ``start ..
+        stop - 1``: its idle time counts from here, and the range is noted (its latest
+        :data:`ANSWERED_KEPT`)."""
         h = self.heads.get((client, epoch))
         if h is not None:
             h.at = max(h.at, now)
+            if stop > start:
+                h.answered = h.answered[-(ANSWERED_KEPT - 1):] + [(start, stop)]
+
+    def read(self, epoch: int) -> List[Tuple[int, int]]:
+        """The ranges of ``epoch`` answered lately to its readers: positions one reader of a job
+        was given, which the others never ask (each reads its own items) though they lie ahead
+        of their heads."""
+        return [r for (c, e), h in self.heads.items() if e == epoch for r in h.answered]
 
     def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
         """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
@@ -489,7 +506,7 @@ class PlanScheduler:
             if isinstance(f, Order):
                 self.orders.answered(f, now)
             else:
-                self.heads.answered(f.client, f.epoch, now)
+                self.heads.answered(f.client, f.epoch, now, f.start, f.stop)
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
@@ -555,22 +572,25 @@ class PlanScheduler:
 
     def _read_by_all(self, epoch: int, video: str, now: float) -> Set[Tuple[int, int]]:
         """(window, crop) of ``video``'s samples in ``epoch`` at decided positions behind every
-        moving head of the epoch (:class:`Heads`), named by no pending fetch, where no make waits
-        on the video: every reader of the epoch has read them, so a decode asked again for a
-        sample dropped before its fetch (or asked again by a reader going back) makes only the
-        samples still to be read."""
+        moving head of the epoch (:class:`Heads`) or answered lately to a reader (:meth:`Heads.read`:
+        the other readers of its job never ask them), named by no pending fetch, where no make
+        waits on the video: read already, so a decode asked again for a sample dropped before its
+        fetch (or asked again by a reader going back), or for the next items of a slow reader,
+        makes only the samples still to be read."""
         waiting = {f.client for f in self.pending}
         plan, heads, n = self.plans.get(epoch), self.heads.moving(epoch, now, waiting), self.slots.samples.get(video)
-        if plan is None or not heads or not n or any(o.epoch == epoch and o.video == video
-                                                     for o in self.orders.waiting):
+        read = self.heads.read(epoch)
+        if plan is None or not (heads or read) or not n or any(o.epoch == epoch and o.video == video
+                                                               for o in self.orders.waiting):
             return set()
-        behind = min(heads)
+        behind = min(heads, default=0)
         asked = [(f.start, f.stop) for f in self.pending if f.epoch == epoch]
         out = set()
         for i in range(n):
             key = SampleKey.at(video, i, self.manifest.crops_per_window)
             p = plan.position(key)
-            if p is not None and p < behind and not any(a <= p < b for a, b in asked):
+            if p is not None and (p < behind or any(a <= p < b for a, b in read)) and \
+                    not any(a <= p < b for a, b in asked):
                 out.add((key.window, key.crop))
         return out
 
@@ -721,6 +741,12 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
     keep = set(heads) | {e for e, _ in runs}
+    read = {e: s.heads.read(e) for e in heads}
+
+    def was_read(e: int, key: Optional[SampleKey]) -> bool:  # answered to a reader still reading (Heads.read)
+        p = None if key is None or not read.get(e) else s.plans[e].position(key)
+        return p is not None and any(a <= p < b for a, b in read[e])
+
     for epoch, stop in sorted((e, h) for e, hs in heads.items() for h in set(hs)):
         if budget <= 0:  # before positions_after, which may build the next epoch's plan
             break
@@ -728,7 +754,7 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
             if budget <= 0 or (e != epoch and (e in heads or e in live)):
                 break
             ek, n = (e, video), slots.samples.get(video)
-            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed or was_read(e, key):
                 continue
             if key is None and n is not None and made.get(ek, 0) >= n:
                 continue
