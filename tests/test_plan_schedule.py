@@ -408,3 +408,17 @@ def test_the_readers_of_one_job_find_what_the_others_read_not_made_again(readers
         made = [_read_as_job(host, readers, epoch, batch) for epoch in range(2)]
         assert max(made) <= 1.02, (batch, made)
 
+
+def test_a_plan_unfolding_keeps_what_its_next_positions_need():
+    """No corpus index: the first fetch waits on the videos whose slots decide its positions, and
+    several workers decode long ones at once. Their samples no position holds yet count where the
+    plan will place them (their order in production: the shuffle buffer draws a sample about
+    there), and those of the videos a pending fetch waits on are that fetch's: the ones read next
+    stay, the ones produced last go first (dropped oldest first, as samples at the plan's edge:
+    1.04-1.1 made a sample read)."""
+    for workers, batch in ((2, 1), (3, 8)):
+        host = _Host(videos=4, per=20, workers=workers, known=False)
+        host.s = PlanScheduler(host.m, 0, 16, ("voxels",), lookahead=16, keep_samples=batch)
+        made = [host.read("job", epoch, batch) for epoch in range(2)]
+        assert max(made) <= 1.02, (workers, batch, made)
+

@@ -34,8 +34,10 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
   after it) is kept beside that bound, up to as many samples again: it is read when the new
   job's head reaches it, where dropping it would decode its videos twice in the epoch. A sample
-  a plan still unfolding has not placed yet counts as one at the plan's edge (its first position
-  not decided), and is kept where no head moves (it is read next).
+  a plan still unfolding has not placed yet counts at its place in the production order (the
+  shuffle buffer draws a sample about there: :func:`production_places`), and is kept where no
+  head moves (it is read next); those of the videos a pending fetch waits on to unfold the plan
+  are that fetch's.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -763,6 +765,33 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     return sorted(waited, key=waited.__getitem__), ahead
 
 
+def production_places(plan: EpochPlan, keys: Set[SampleKey], slots: Slots) -> Iterator[Tuple[SampleKey, int]]:
+    """(key, place) of ``keys``, samples no decided position of ``plan`` holds yet: each one's index
+    in the production order, at least the plan's edge (``known``), the samples of videos whose
+    slots are not known counted as :meth:`Slots.expected` gives. A shuffle buffer draws a sample
+    at about its production index (it enters the buffer that many positions before, and is drawn
+    a buffer's worth of positions later on average), so the order of the places is the order in
+    which the plan reaches the samples, the ones produced last last."""
+    if not keys:
+        return
+    counted, start = plan.counted
+    starts: Dict[str, int] = {}
+    wanted, i = {k.video for k in keys}, counted
+    while len(starts) < len(wanted) and i < len(plan.videos):  # the videos not counted, in production order
+        v = plan.videos[i]
+        if v in wanted:
+            starts[v] = start
+        start += slots.expected(v)
+        i += 1
+    for k in keys:
+        n = plan._video_number(k.video)
+        if n is not None and n < counted:
+            first = plan._starts[n]
+        else:
+            first = starts.get(k.video, start)
+        yield k, max(plan.known, first + k.ordinal(plan.crops_per_window))
+
+
 def trim(s: "PlanScheduler", now: float) -> None:
     """Scheduler ``s``'s keeping (module docstring): drop fetched samples past ``keep_samples``
     (least recently fetched first); then, while the store holds more than ``keep_samples +
@@ -777,10 +806,19 @@ def trim(s: "PlanScheduler", now: float) -> None:
     over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
-    named = set()
+    named, unfolds = set(), set()
     for f in s.pending:
         plan = s.plan(f.epoch)
         named.update((f.epoch, key) for key in f.keys(plan) if key is not None)
+        if not plan.complete and f.stop > plan.known:
+            unfolds.add(f.epoch)
+    if unfolds:  # a fetch of positions not decided yet names the videos whose slots decide them (unfolding)
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(s.store) + list(s.failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        waited = {ek for f in s.pending if f.epoch in unfolds
+                  for ek in unfolding(s.plans[f.epoch], f.stop, s.slots, made)}
+        named.update(sk for sk in s.store if (sk[0], sk[1].video) in waited and sk not in s.fetched)
     # what a pending fetch names is a batch asked now, not made ahead: the bound is on the rest
     over -= sum(1 for sk in named if sk in s.store and sk not in s.fetched)
     if over <= 0:
@@ -788,16 +826,16 @@ def trim(s: "PlanScheduler", now: float) -> None:
     live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
     asked = set(named)
     named |= s.orders.named(list(s.store), now)
-    undecided = set()  # samples of a plan still unfolding past its decided positions: read from its edge on
+    undecided = {}  # samples of a plan still unfolding past its decided positions -> where it places them, about
     for e in live & set(s.plans):
         keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
-        undecided.update((e, k) for k in s.plans[e].undecided(keys))
+        undecided.update(((e, k), p) for k, p in production_places(s.plans[e], s.plans[e].undecided(keys), s.slots))
     waiting = {f.client for f in s.pending}
     heads = {e: s.heads.moving(e, now, waiting) for e in live}
 
-    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample as one at the plan's edge
+    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample at its place in production
         plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
-        p = None if plan is None else plan.known if sk in undecided else plan.position(sk[1])
+        p = None if plan is None else undecided[sk] if sk in undecided else plan.position(sk[1])
         return None if p is None else min((p - h for h in stops if h <= p), default=None)
 
     named |= {sk for sk in undecided if reached(sk) is None}  # the plan's edge, where no head moves: read next
