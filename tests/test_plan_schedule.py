@@ -422,3 +422,16 @@ def test_a_plan_unfolding_keeps_what_its_next_positions_need():
         made = [host.read("job", epoch, batch) for epoch in range(2)]
         assert max(made) <= 1.02, (workers, batch, made)
 
+
+def test_a_job_rolled_back_to_the_epochs_start_finds_the_next_epochs_first_samples_kept():
+    """A job read an epoch to its end (the next epoch's first samples made ahead), then rolled back
+    to the epoch's start in new processes. While it reads the epoch again, the next epoch's
+    samples lie past its heads' end of the epoch: kept in the order the heads reach them (dropped
+    first, as of an epoch no reader reaches, they were made again)."""
+    host = _Host(videos=60, workers=2)
+    host.read("first", 0, 12, ahead=1)
+    for _ in range(20):
+        host.tick()  # the next epoch's first samples, made ahead
+    host.read("again", 0, 12, ahead=1)
+    host.read("again", 1, 12, ahead=1)
+    assert host.made[1] / host.total <= 1.02, host.made[1] / host.total  # the samples made ahead count

@@ -37,7 +37,8 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   a plan still unfolding has not placed yet counts at its place in the production order (the
   shuffle buffer draws a sample about there: :func:`production_places`), and is kept where no
   head moves (it is read next); those of the videos a pending fetch waits on to unfold the plan
-  are that fetch's.
+  are that fetch's. The next epoch's samples, before any reader fetched it (or where only a job
+  cut off did), lie past the end of the epoch the heads read: they reach them there.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -824,14 +825,21 @@ def trim(s: "PlanScheduler", now: float) -> None:
     if over <= 0:
         return
     live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
+    waiting = {f.client for f in s.pending}
+    heads = {e: s.heads.moving(e, now, waiting) for e in live}
+    # the epoch after one read, where no head moves (none fetched it yet, or a job cut off did): the
+    # heads of the epoch before reach it past their end (its first positions are made ahead of
+    # them, positions_after)
+    for e in sorted(live):
+        if heads.get(e) and not heads.get(e + 1) and e + 1 in s.plans and s.plans[e].complete:
+            heads[e + 1] = [h - len(s.plans[e]) for h in heads[e]]
+            live.add(e + 1)
     asked = set(named)
     named |= s.orders.named(list(s.store), now)
     undecided = {}  # samples of a plan still unfolding past its decided positions -> where it places them, about
     for e in live & set(s.plans):
         keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
         undecided.update(((e, k), p) for k, p in production_places(s.plans[e], s.plans[e].undecided(keys), s.slots))
-    waiting = {f.client for f in s.pending}
-    heads = {e: s.heads.moving(e, now, waiting) for e in live}
 
     def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample at its place in production
         plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
