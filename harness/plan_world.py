@@ -4,9 +4,13 @@ replays exactly.
 
 What the world does:
 
+* a corpus of 1-14 videos of 0-6 windows, or (in :data:`LONG_SHARE` of the seeds that run
+  servers) 1-8 videos of 0-20 windows, at 1 or 2 samples a window: 0-40 samples a video;
 * workers decode at one sample a tick, stall (3-60 ticks), die (the pool replaces them), and hang
   until the task timeout; files give fewer windows than their slots or none, or break (at one
   place, each pass); a store that fails for a while cuts one or two passes of other files short;
+* servers make 0 or 8 samples ahead, or a shuffle buffer (1, 4 or 16) as ``PlanServer`` sets
+  them, and keep 0, 4 or 32 fetched ones;
 * the corpus index knows some videos' slots at start, none or all; the others' the server learns
   from their first decode (the plan unfolds), and the index keeps a whole pass's count for a
   server started again;
@@ -17,14 +21,21 @@ What the world does:
   its name by another cut (another tag, other windows, its index entry gone): the plan's identity
   changes, a job's position of the plan before is refused (``Position.from_dict``, as the client
   and the server check it) and it reads that epoch again from its start under the new plan;
-* jobs of 1-3 ranks at 1-5 rows a rank (fewer rows than shards included), read by the main
-  process or by 1-3 DataLoader workers per rank, persistent or not (``harness.plan_world_jobs``:
+* one or two jobs at once, each of 1-3 ranks at 1-5 rows a rank (fewer rows than shards
+  included), read by the main process or by 1-3 DataLoader workers per rank, or (in
+  :data:`BIG_SHARE` of the jobs) of 1-8 ranks at 1-32 rows, read by the main process or 1, 2 or 4
+  DataLoader workers per rank (1-32 readers), persistent or not (``harness.plan_world_jobs``:
   real ``V2VStreamDataset`` objects take ``set_epoch`` and ``load_state_dict`` in the main process,
-  the workers' copies at their next pass); each reader asks up to two items ahead, asks again a
-  fetch unanswered for ``RETRY`` ticks (a lost reply, a restarted server), settles the epoch's end
-  as the client does (probing shards whose length it does not know); jobs checkpoint and resume in
-  the same process or at another layout, and roll back to an older checkpoint of the epoch (the
-  rows read since count again);
+  the workers' copies at their next pass); each reader's pass is a client of its own (its
+  connection: an answer to a pass that ended cannot be sent, and the server forgets the client);
+  each reader asks up to two items ahead, asks again a fetch unanswered for ``RETRY`` ticks (a
+  lost reply, a restarted server), settles the epoch's end as the client does (probing shards
+  whose length it does not know); jobs checkpoint and resume in the same process or at another
+  layout, and roll back to an older checkpoint of the epoch (the rows read since count again);
+* in :data:`CUT_SHARE` of the seeds that run servers, the first job is cut off mid-epoch (5-95 %
+  into its first or second epoch: its processes killed, it asks nothing more, its fetches in
+  flight stay asked) and started again 1-51 ticks later against the same servers, from its first
+  epoch, asking for the same outputs at a layout drawn anew;
 * readers ask for a subset of the outputs, and a new output widens what workers make mid-run;
 * a third of the seeds run a fleet instead (``harness.plan_world_fleet``): 1-16 hosts each serving
   the whole corpus's one plan, joining, leaving, stalling and restarting mid-epoch, read through
@@ -37,8 +48,9 @@ interleaved plan exactly: every position once across ranks and workers, at its p
 wherever its window was given, padding only for windows a file did not give and past a shard's or
 the epoch's end; every reader ended at the step the epoch ends at; each worker's pass was of the
 epoch and position the loop set; a position refused exactly when a file was replaced; bounded
-stores; each sample a lone job is answered with made once (:meth:`World.judge_decodes`); a
-fleet's jobs, each epoch as one server's plan says: ``harness.plan_world_fleet``).
+stores; each sample read made once where one job reads at a time (:meth:`World.judge_decodes`,
+which names what it leaves out); a fleet's jobs, each epoch as one server's plan says:
+``harness.plan_world_fleet``).
 ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_schedule.py``
 runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
@@ -62,7 +74,7 @@ from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
 from harness.plan_world_fleet import FleetWorld
-from harness.plan_world_jobs import OUTPUTS, Job, Reading
+from harness.plan_world_jobs import OUTPUTS, Job, Reading, layout
 from v2v_server.delivery.plan_schedule import PlanScheduler
 from v2v_server.ops.startup import select_shard
 from v2v_wire.ids import SampleKey
@@ -72,9 +84,18 @@ from v2v_wire.plan_shards import shards_identity, shards_samples
 
 #: The share of seeds that run a fleet (``harness.plan_world_fleet``) instead of 1-4 shards.
 FLEET_SHARE = 1 / 3
-#: Samples a server may make of the epochs read per row it answered (:meth:`World.judge_decodes`):
-#: each once, and what a decode makes ahead of a fetch that a job's end leaves unread.
-MADE_PER_ROW = 1.05
+#: Samples the servers may make of the epochs read per sample the readers read
+#: (:meth:`World.judge_decodes`): each once, and what a decode makes ahead of a fetch that a
+#: job's end leaves unread.
+MADE_PER_READ = 1.05
+#: The share of the seeds that run servers (not a fleet) whose videos give 0-20 windows (0-40
+#: samples at 2 a window), not 0-6 (at most 8 videos, not 14: the seeds stay cheap).
+LONG_SHARE = 0.35
+#: The share of the jobs of the seeds that run servers drawn big (``plan_world_jobs.layout``:
+#: 1-32 readers, 1-32 rows a rank).
+BIG_SHARE = 0.4
+#: The share of the seeds that run servers whose first job is cut off mid-epoch and started again.
+CUT_SHARE = 0.5
 
 
 @dataclass
@@ -131,7 +152,15 @@ class Outcome:
     hedged: int = 0  # makes a reader's router hedged to another host
     copies: int = 0  # makes of a video's samples asked of a second host (hedges, copies, a host gone)
     answered: int = 0  # rows holding a sample the servers answered fetches with, of the epochs read
-    counted: int = 0  # 1 when its decodes were counted (no server restarted, no output widened)
+    read: int = 0  # rows holding a sample the readers took (items' parts and probes), of the epochs read
+    abandoned: int = 0  # rows holding a sample answered to a pass that had ended, of the epochs read
+    made: int = 0  # samples the servers made of the epochs read
+    cut_off: int = 0  # jobs cut off mid-epoch (a new job started after each)
+    counted: int = 0  # 1 when its decodes were counted (:meth:`World.judge_decodes`)
+    counted_readers: int = 0  # 1 when counted and a job read with 16 or more processes at once
+    counted_batch: int = 0  # 1 when counted and a job read 16 or more rows a rank
+    counted_long: int = 0  # 1 when counted and a video gave 20 or more samples
+    counted_cut: int = 0  # 1 when counted and a job was cut off mid-epoch
 
 
 def check(seed: int, ticks: int = 30000) -> Outcome:
@@ -152,8 +181,15 @@ class World:
     def __init__(self, seed: int):
         self.seed = seed
         self.rng = rng = random.Random(seed)
+        # a third of the seeds run a fleet instead (drawn apart, as the cuts); the shard servers'
+        # long videos, settings as PlanServer's, big jobs and cut-off jobs are drawn apart too
+        # (``shape``), so that a fleet's seed draws what ``FleetWorld`` reads as it always has
+        self.in_fleet = random.Random(f"fleet/{seed}").random() < FLEET_SHARE
+        self.shape = shape = random.Random(f"shape/{seed}")
         self.kpw = rng.choice([1, 1, 2])
-        self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
+        long = not self.in_fleet and shape.random() < LONG_SHARE
+        most, videos = (20, 8) if long else (6, 14)  # windows a video gives, videos, at most
+        self.slots = {f"v{i:02d}.mp4": rng.randint(0, most) for i in range(min(videos, rng.randint(1, 14)))}
         self.tags = {v: 0 for v in self.slots}  # which cut of each file (another after a replacement)
         whole = rng.choice([0.8, 0.5])  # the share of files that give every window; the others are short or empty
         self.given = {v: (n if rng.random() < whole else rng.choice([0, rng.randint(0, n)]))
@@ -164,15 +200,25 @@ class World:
         self.settings = dict(lookahead=rng.choice([0, 8]), keep_samples=rng.choice([0, 4, 32]), hedge_s=5.0,
                              task_timeout_s=40.0)
         self.buffer = rng.choice([1, 4, 16])
+        if not self.in_fleet and shape.random() < 0.4:  # made ahead: a shuffle buffer, as PlanServer sets it
+            self.settings["lookahead"] = self.buffer
         shards = rng.choice([1, 1, 2, 3, 4])
         self.servers = [Server(i, select_shard(sorted(self.slots), i, shards)) for i in range(shards)]
         pool = rng.randint(1, 3)
+        # a plan unfolding whose decodes at once make more than a server keeps (judge_decodes)
+        longest, kept = max(self.slots.values(), default=0) * self.kpw, \
+            self.settings["keep_samples"] + max(self.settings["lookahead"], self.buffer)
+        self.overflows = len(self.index) < len(self.slots) and kept + longest < min(pool * longest,
+                                                                                   sum(self.slots.values()) * self.kpw)
         self.next_worker = 0
         for s in self.servers:
             self.start(s, pool)
         self.identify()
-        self.jobs = [Job(f"j{i}", rng.randint(1, 3), rng.randint(1, 5), OUTPUTS[:rng.randint(1, 3)],
-                         rng.choice([0, 0, 1, 2, 3]), rng.random() < 0.7) for i in range(rng.randint(1, 2))]
+        self.named_jobs = 0
+        self.jobs = [self.new_job(0) for _ in range(rng.randint(1, 2))]
+        self.concurrent = len(self.jobs) > 1  # two jobs read at once
+        if not self.in_fleet and shape.random() < CUT_SHARE:
+            self.jobs[0].cut = shape.randrange(self.epochs), shape.uniform(0.05, 0.95)
         self.restart_p = rng.choice([0.0, 0.001, 0.003])
         self.out = Outcome(seed, [], shards, int(shards > 1))
         self.reading = Reading(self)
@@ -181,8 +227,31 @@ class World:
         # files replaced while a server is down: drawn apart, so the other draws stay each seed's
         self.cuts = random.Random(f"cuts/{seed}")
         self.replace_p = self.cuts.choice([0.0, 1.0])
-        # a third of the seeds run a fleet instead (drawn apart, as the cuts)
-        self.fleet = FleetWorld(self) if random.Random(f"fleet/{seed}").random() < FLEET_SHARE else None
+        self.fleet = FleetWorld(self) if self.in_fleet else None
+
+    def new_job(self, begins: int) -> Job:
+        """A job starting at tick ``begins``, asking for a prefix of the outputs: of 1-3 ranks at 1-5
+        rows, read by the main process or 1-3 DataLoader workers a rank; or, for the shard servers,
+        in :data:`BIG_SHARE` of the jobs, of a big layout (:func:`plan_world_jobs.layout`)."""
+        rng, self.named_jobs = self.rng, self.named_jobs + 1
+        if not self.in_fleet and self.shape.random() < BIG_SHARE:
+            ranks, batch, loader, persistent = layout(self.shape, True)
+            return Job(f"j{self.named_jobs - 1}", ranks, batch, OUTPUTS[:self.shape.randint(1, 3)], loader, persistent,
+                       big=True, begins=begins)
+        ranks, batch, outputs = rng.randint(1, 3), rng.randint(1, 5), OUTPUTS[:rng.randint(1, 3)]
+        return Job(f"j{self.named_jobs - 1}", ranks, batch, outputs, rng.choice([0, 0, 1, 2, 3]), rng.random() < 0.7,
+                   begins=begins)
+
+    def cut_off(self, job: Job, now: int) -> None:
+        """``job`` is cut off mid-epoch (its processes killed: it asks nothing more, the fetches it
+        has in flight stay asked); the job is started again 1-51 ticks later against the same
+        servers, asking for the same outputs, at a layout drawn anew, from its first epoch."""
+        job.gone = True
+        job.read_under[job.epoch] = (self.truths(), dict(self.given))
+        self.out.cut_off += 1
+        again = self.new_job(now + 1 + self.rng.randint(0, 50))
+        again.outputs = job.outputs
+        self.jobs.append(again)
 
     def start(self, server: Server, pool: int) -> None:
         """(Re)start ``server``: a fresh scheduler over its shard's manifest (the corpus index's slots,
@@ -234,8 +303,8 @@ class World:
                     self.start(s, len(s.workers))
                     self.identify()
                     self.out.restarts += 1
-            for job in self.jobs:
-                if job.epoch < self.epochs:
+            for job in list(self.jobs):
+                if job.epoch < self.epochs and not job.gone and now >= job.begins:
                     self.reading.ask(job, now)
             for k, s in enumerate(self.servers):
                 for f, rows in s.scheduler.answer(now):
@@ -243,7 +312,7 @@ class World:
                     self.reading.take(k, f, rows, now)
                 self.decode(s, now)
                 self.out.biggest_store = max(self.out.biggest_store, len(s.scheduler.store))
-            if all(j.epoch >= self.epochs for j in self.jobs):
+            if all(j.epoch >= self.epochs or j.gone for j in self.jobs):
                 break
         self.judge()
         return self.out
@@ -296,46 +365,73 @@ class World:
         if served != sorted(self.slots):
             problems.append(f"the shards serve {served}, the corpus is {sorted(self.slots)}")
         for job in self.jobs:
+            if job.gone:  # the epochs it read whole, and what it read of the one it was cut off in
+                for e in range(job.epoch + 1):
+                    self.judge_epoch(job, e, whole=e < job.epoch)
+                continue
             if job.epoch < self.epochs:
                 problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken()}")
                 continue
             for e in range(self.epochs):
                 self.judge_epoch(job, e)
-        # memory: what pending fetches name (2 jobs, 9 readers, 2 items of 5 rows and a probe a
-        # shard), plus the kept ones, plus the samples decoded ahead
-        bound = self.settings["keep_samples"] + 2 * (9 * (2 * 5 + 4) + self.settings["lookahead"]) + \
+        # memory: what pending fetches name (each job's readers, 2 items and a probe a shard each,
+        # at its widest layout), plus the kept ones, plus the samples decoded ahead
+        bound = self.settings["keep_samples"] + sum(j.most_named + self.settings["lookahead"] for j in self.jobs) + \
             max(self.slots.values(), default=0) * self.kpw * 3
         if self.out.biggest_store > bound:
             problems.append(f"a store held {self.out.biggest_store} samples, over {bound}")
         self.judge_decodes()
 
     def judge_decodes(self) -> None:
-        """Each sample a fetch is answered with is made once: the samples the servers made of the
-        epochs read, at most :data:`MADE_PER_ROW` per row answered (a row answered twice, to two
-        jobs or to a fetch asked again, counts twice). Only where one job reads (another job,
-        behind or ahead of it in the same epoch, finds in a bounded store what both read at once,
-        the rest made again), no server restarted (what it had made is gone) and no output was
-        widened (what was made lacks it), and where the servers make a shuffle buffer ahead, as
-        ``PlanServer`` sets them (a store of fewer holds less than the plan reaches next)."""
-        if len(self.jobs) > 1 or self.out.restarts or self.out.widened or self.settings["lookahead"] < self.buffer:
-            return
-        self.out.counted = 1
-        made = sum(n for s in self.servers for e, n in s.scheduler.epoch_made.items() if e < self.epochs)
-        if made > MADE_PER_ROW * max(1, self.out.answered):
-            self.out.problems.append(f"the servers made {made} samples of the epochs read for {self.out.answered} rows "
-                                     f"answered: over {MADE_PER_ROW} a row")
+        """Each sample read is made once: the samples the servers made of the epochs read, at most
+        :data:`MADE_PER_READ` per sample the readers asked and took (an item's part or a probe's
+        row; a row read again after a rollback, a refusal, by the job started again after one cut
+        off, or asked by a probe and then by its step, counts again), or that were answered to a
+        pass that had ended (a reader cut off or resumed elsewhere: a server makes what was
+        asked, and learns the reader left only when its answer cannot be sent). Counted
+        wherever one job reads at a time (cut off and started again included), at any number of
+        readers, batch size and video length, except where:
 
-    def judge_epoch(self, job: Job, e: int) -> None:
-        """Every position of epoch ``e`` of the shards' plans as they were while it was read, once,
-        at its place: a sample wherever its window was given, padding for a window not given, past
-        a shard's end and past the epoch's end."""
+        * two jobs read at once: each reads the epoch at its own place, and a bounded store holds
+          what both are about to read only while they are close (the rest is made again for the
+          one behind);
+        * a server restarted: what it had made is gone, and is made again;
+        * an output was widened: what was made lacks it, and is made again;
+        * the servers make ahead fewer samples than a shuffle buffer (``lookahead`` < the buffer,
+          a setting ``PlanServer`` never makes): a decode makes a whole video, whose samples the
+          buffer spreads past what the store may keep of them;
+        * (a known gap) the corpus index lacks some videos' slots and the store keeps fewer
+          samples (``keep_samples`` + ``lookahead`` or a buffer, + the longest video) than the
+          workers decode at once (a video each) and than the corpus holds: the first fetch waits
+          on the videos whose slots unfold the plan, counted at the smallest size known while
+          none is, so every worker starts one, and a store of fewer drops some that are read next
+          (seed 959 made 1.07 a sample read; a server of 4 videos of 40 samples, 3 workers and a
+          buffer of 1 made 1.48)."""
+        out, s = self.out, self.settings
+        if self.concurrent or out.restarts or out.widened or s["lookahead"] < self.buffer or self.overflows:
+            return
+        out.counted = 1
+        out.counted_readers = int(any(j.most_readers >= 16 for j in self.jobs))
+        out.counted_batch = int(any(j.most_batch >= 16 for j in self.jobs))
+        out.counted_long = int(max(self.given.values(), default=0) * self.kpw >= 20)
+        out.counted_cut = int(out.cut_off > 0)
+        out.made = sum(n for sv in self.servers for e, n in sv.scheduler.epoch_made.items() if e < self.epochs)
+        asked = out.read + out.abandoned
+        if out.made > MADE_PER_READ * max(1, asked):
+            out.problems.append(f"the servers made {out.made} samples of the epochs read for {out.read} read and "
+                                f"{out.abandoned} answered to passes that had ended: over {MADE_PER_READ} a sample")
+
+    def judge_epoch(self, job: Job, e: int, whole: bool = True) -> None:
+        """Every position of epoch ``e`` of the shards' plans as they were while it was read, once
+        (``whole``; else those read), at its place: a sample wherever its window was given, padding
+        for a window not given, past a shard's end and past the epoch's end."""
         problems = self.out.problems
         truths, given = job.read_under[e]
         plans = [EpochPlan(m, self.seed, e, self.buffer) for m in truths]
         n, total = len(plans), shards_samples([len(p) for p in plans])
         rows = job.rows.get(e, {})
         missing = [t for t in range(total) if t not in rows]
-        if missing:
+        if missing and whole:
             problems.append(f"{job.name} epoch {e}: read {total - len(missing)} of {total} positions")
         for t, (k, r) in rows.items():
             plan = plans[t % n]
@@ -352,7 +448,8 @@ class World:
 #: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
           "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_stalls", "fleet_restarts",
-          "fleet_resumes", "resized", "hedged", "copies", "counted")
+          "fleet_resumes", "resized", "hedged", "copies", "cut_off", "counted", "counted_readers", "counted_batch",
+          "counted_long", "counted_cut")
 
 
 def _seeds(text: str) -> Tuple[int, int]:
@@ -375,16 +472,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     logging.getLogger("v2v.client").setLevel(logging.ERROR)  # a fleet's hosts left out and back, by the thousand
     lo, hi = a.seeds
     t = time.perf_counter()
-    failed, totals = [], dict.fromkeys(TOTALS, 0)
+    failed, totals, most = [], dict.fromkeys(TOTALS, 0), 0.0
     for seed in range(lo, hi):
         o = check(seed)
         for k in totals:
             totals[k] += getattr(o, k)
+        if o.counted:
+            most = max(most, o.made / max(1, o.read + o.abandoned))
         if o.problems:
             failed.append(seed)
             if not a.json:
                 print(f"seed {seed}: {o.problems[0]} (+{len(o.problems) - 1} more)")
     summary = {"seeds": hi - lo, "failed": len(failed), "failed_seeds": failed[:20], **totals,
-               "seconds": round(time.perf_counter() - t, 1)}
-    print(json.dumps(summary) if a.json else f"{hi - lo} seeds, {len(failed)} failed; {totals}")
+               "most_made_per_read": round(most, 3), "seconds": round(time.perf_counter() - t, 1)}
+    print(json.dumps(summary) if a.json else f"{hi - lo} seeds, {len(failed)} failed; {totals}; at most "
+          f"{most:.3f} made a sample read where counted; {summary['seconds']} s")
     return 1 if failed else 0

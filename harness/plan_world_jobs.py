@@ -3,7 +3,8 @@ through the client's own rules.
 
 Each reading process is a :class:`Reader`: one rank's items ``item, item + workers, ...`` of one
 epoch from a global position (``v2v_client.plan_dataset._rows``; a DataLoader worker ``j`` of
-``k`` reads every ``k``-th from ``j``). An item's fetch is split among the shards holding its
+``k`` reads every ``k``-th from ``j``), each pass a client of its own to the servers (a pass
+opens its own connection). An item's fetch is split among the shards holding its
 rows (``plan_shards.shard_parts``), asked of each shard's server, and merged in the interleave's
 order (``plan_shards.interleaved``). Over several shards an item is yielded once
 ``plan_shards.step_in_epoch`` settles it, each shard whose length is not known asked for the row
@@ -40,10 +41,21 @@ OUTPUTS = ("voxels", "frames", "flow")
 ENDPOINT = "tcp://127.0.0.1:9"
 
 
+def layout(rng, big: bool) -> Tuple[int, int, int, bool]:
+    """A job's layout drawn by ``rng``: (ranks, rows a rank, DataLoader workers a rank (0: the
+    main process reads), persistent workers). A big job: 1-8 ranks of 1-32 rows, 0, 1, 2 or 4
+    workers a rank (4 twice as often: 1-32 readers, 16 and more in over a quarter); else 1-3
+    ranks of 1-5 rows, 0-3 workers a rank."""
+    if big:
+        return rng.randint(1, 8), rng.randint(1, 32), rng.choice([0, 1, 2, 4, 4]), rng.random() < 0.7
+    return rng.randint(1, 3), rng.randint(1, 5), rng.choice([0, 0, 1, 2, 3]), rng.random() < 0.7
+
+
 @dataclass(eq=False)
 class Reader:
     """One process's pass: rank ``rank``'s items from ``item`` on, every ``workers``-th, of
-    ``epoch`` from global position ``origin``. ``samples``: each shard's samples per epoch as
+    ``epoch`` from global position ``origin``; ``client``: the name the servers know its fetches
+    by (a pass opens its own connection). ``samples``: each shard's samples per epoch as
     this reader knows them (None: not yet); ``seen``: ``plan_shards.furthest_slot``; ``parts``:
     item -> shard -> its rows (None until answered); ``asked``: (shard, ("step", item) or
     ("probe", position)) -> (request, tick) unanswered; ``end``: the item it ended at."""
@@ -63,12 +75,16 @@ class Reader:
     probed: Dict[Tuple[int, int], bool] = field(default_factory=dict)
     asked: Dict[Tuple[int, tuple], Tuple[int, int]] = field(default_factory=dict)
     end: Optional[int] = None
+    client: tuple = ()
 
 
 @dataclass(eq=False)
 class Job:
     """A trainer: ``world`` ranks of ``batch`` rows, read by ``loader`` DataLoader workers per rank
-    (0: the main process reads), ``persistent`` or made at each pass."""
+    (0: the main process reads), ``persistent`` or made at each pass; ``big``: its layouts are
+    drawn from the big ranges (:func:`layout`). ``cut``: (epoch, share of it) where it is cut
+    off (its processes killed: it asks nothing more, its fetches in flight stay asked); ``gone``
+    once it is; ``begins``: the tick it starts at."""
 
     name: str
     world: int
@@ -86,6 +102,19 @@ class Job:
     readers: List[Reader] = field(default_factory=list)
     datasets: Optional[List[V2VStreamDataset]] = None  # one per rank, with DataLoader workers
     copies: Optional[List[List[V2VStreamDataset]]] = None  # each rank's workers' copies
+    big: bool = False
+    cut: Optional[Tuple[int, float]] = None
+    gone: bool = False
+    begins: int = 0
+    passes: int = 0  # passes begun: each reader's client is of its pass
+    most_named: int = 0  # the most positions its readers' fetches in flight name at once, over its layouts
+    most_readers: int = 0  # the most processes it read with at once, over its layouts
+    most_batch: int = 0  # the most rows a rank it read, over its layouts
+
+    @property
+    def readers_count(self) -> int:
+        """Processes that read: a rank's main process, or its DataLoader workers."""
+        return self.world * max(1, self.loader)
 
     @property
     def per_step(self) -> int:
@@ -114,8 +143,12 @@ class Reading:
         w = self.world
         samples = [w.samples_of(s, job.epoch) for s in w.servers]
         steps = epoch_steps(shards_samples(samples), job.world, job.batch, job.start)
+        job.passes += 1
+        job.most_named = max(job.most_named, job.readers_count * (PREFETCH * job.batch + len(w.servers)))
+        job.most_readers, job.most_batch = max(job.most_readers, job.readers_count), max(job.most_batch, job.batch)
         if not job.loader:
-            job.readers = [Reader(r, 0, 1, job.epoch, job.start, 0, list(samples), steps) for r in range(job.world)]
+            job.readers = [Reader(r, 0, 1, job.epoch, job.start, 0, list(samples), steps,
+                                  client=(job.name, job.passes, r, 0)) for r in range(job.world)]
             w.out.direct_passes += 1
             return
         if new_process or job.datasets is None:
@@ -138,7 +171,8 @@ class Reading:
                 if (epoch, origin, item) != (job.epoch, job.start, j):
                     w.out.problems.append(f"{job.name} rank {r} worker {j}: a pass of epoch {epoch} from {origin} "
                                           f"(item {item}), the loop set epoch {job.epoch} from {job.start}")
-                job.readers.append(Reader(r, j, job.loader, epoch, origin, item, list(samples), steps, item, item))
+                job.readers.append(Reader(r, j, job.loader, epoch, origin, item, list(samples), steps, item, item,
+                                          client=(job.name, job.passes, r, j)))
         w.out.loader_passes += 1
 
     # ------------------------------------------------------------------ a job's turn
@@ -147,6 +181,10 @@ class Reading:
         turn, end its epoch, or checkpoint and resume (the same process, or another at another
         layout) or roll back."""
         w, rng, out = self.world, self.world.rng, self.world.out
+        if job.cut is not None and job.epoch == job.cut[0] and job.plan is w.plan and \
+                job.start + job.taken() * job.per_step >= job.cut[1] * shards_samples([t.samples for t in w.truths()]):
+            w.cut_off(job, now)
+            return
         if job.plan is not w.plan:  # the first turn, or a server started again since the last
             if job.plan is not None and self.refused(job):  # the epoch read again under the new plan
                 job.start, job.checkpoints, job.rows[job.epoch] = 0, [0], {}
@@ -197,8 +235,7 @@ class Reading:
         job.rows[job.epoch] = {p: row for p, row in job.rows.get(job.epoch, {}).items() if p < job.start}
         new = not job.loader or rng.random() < 0.5
         if new:
-            job.world, job.batch = rng.randint(1, 3), rng.randint(1, 5)
-            job.loader, job.persistent = rng.choice([0, 0, 1, 2, 3]), rng.random() < 0.7
+            job.world, job.batch, job.loader, job.persistent = layout(rng, job.big)
         self.begin(job, new, True)
 
     def turn(self, job: Job, reader: Reader, now: int) -> None:
@@ -264,7 +301,7 @@ class Reading:
         self.request += 1
         reader.asked[(k, what)] = (self.request, now)
         self.requests[self.request] = (job, reader, k, what)
-        self.world.servers[k].scheduler.fetch((job.name, job.outputs), self.request, reader.epoch, lo, hi,
+        self.world.servers[k].scheduler.fetch(reader.client + (job.outputs,), self.request, reader.epoch, lo, hi,
                                               now, job.outputs)
 
     def take(self, k: int, f, rows, now: int) -> None:
@@ -274,14 +311,23 @@ class Reading:
         if entry is None:
             return
         job, reader, _, what = entry
-        if reader not in job.readers or reader.asked.pop((k, what), None) is None:
-            return  # an answer to a fetch no longer waited for: dropped, as the reader drops it
         w = self.world
+        if job.gone or reader not in job.readers or reader.end is not None:
+            # its pass ended, its connection closed: the send fails and the server forgets the
+            # client (``PlanServer._send``), having made what it asked
+            w.servers[k].scheduler.forget(f.client)
+            if f.epoch < w.epochs:
+                w.out.abandoned += sum(1 for r in rows if r.sample is not None)
+            return
+        if reader.asked.pop((k, what), None) is None:
+            return  # an answer to a fetch asked again: dropped, as the reader drops it
         self.check_rows(job, k, f, rows)
         samples = w.samples_of(w.servers[k], f.epoch)
         if samples is not None:
             reader.samples[k] = samples
         reader.seen = furthest_slot(reader.seen, k, len(w.servers), f.start, [r.key for r in rows])
+        if f.epoch < w.epochs:  # an item's part or a probe's row (its step asks the sample again)
+            w.out.read += sum(1 for r in rows if r.sample is not None)
         if what[0] == "probe":
             if rows[0].key is None and samples is None:
                 w.out.problems.append(f"shard {k}: position {what[1]} answered past the end without its samples")
@@ -301,9 +347,9 @@ class Reading:
                                 f"{plan.key(row.position)}")
             if row.sample is not None and row.sample[:2] != (f.epoch, row.key):
                 problems.append(f"shard {k} epoch {f.epoch} position {row.position}: the sample of {row.sample[:2]}")
-            if row.sample is not None and not set(f.client[1]) <= set(row.sample[2]):
+            if row.sample is not None and not set(f.client[-1]) <= set(row.sample[2]):
                 problems.append(f"shard {k} epoch {f.epoch} position {row.position}: made with {row.sample[2]}, "
-                                f"asked {f.client[1]}")
+                                f"asked {f.client[-1]}")
 
     def emit(self, job: Job, reader: Reader, i: int) -> None:
         """``reader`` yields item ``i``: the shards' parts merged in the interleave's order, each

@@ -18,16 +18,18 @@ def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
     files; slots known at start or learned from decodes (the plan unfolding); 1-4 shard servers
     read as one interleaved plan, each killed and started again on its own, a file replaced under
     its name by another cut while it was down (the positions of the plan before refused, the epoch
-    read again); jobs of 1-3 ranks at any batch size, read by the main process or by 1-3
-    DataLoader workers (persistent or not) that take ``set_epoch`` and ``load_state_dict`` at
-    their next pass, resuming at other layouts and rolling back to older checkpoints; outputs
-    widened mid-run. A third of the seeds run a fleet of 1-16 hosts serving one plan
-    (``harness.plan_world_fleet``) that join, leave, stall and restart under the same or a new
-    name, read through the client's ``fleet_pass.Pass`` and ``Router`` over a transport that
-    delays and loses messages: each position once, its bytes, padding only where one server puts
-    it, each pass ended at the epoch's end, positions resumed on another number of hosts. Where one
-    job reads and no server restarts, each sample answered is made once (1.05 a row at most).
-    Replay a seed with ``python -m harness.plan_world --seeds N:N+1``."""
+    read again); videos of 0-40 samples; jobs of 1-32 readers (1-8 ranks at 1-32 rows, read by
+    the main process or by DataLoader workers, persistent or not) that take ``set_epoch`` and
+    ``load_state_dict`` at their next pass, resuming at other layouts and rolling back to older
+    checkpoints, cut off mid-epoch and started again; outputs widened mid-run. A third of the
+    seeds run a fleet of 1-16 hosts serving one plan (``harness.plan_world_fleet``) that join,
+    leave, stall and restart under the same or a new name, read through the client's
+    ``fleet_pass.Pass`` and ``Router`` over a transport that delays and loses messages: each
+    position once, its bytes, padding only where one server puts it, each pass ended at the
+    epoch's end, positions resumed on another number of hosts. Where one job reads at a time (a
+    job cut off and started again included), no server restarts and no output widens, each sample
+    read is made once (1.05 made a sample read at most), in jobs of 16 readers and more, at 16
+    rows a rank and more, over videos of 20 samples and more (``World.judge_decodes``). Replay a seed with ``python -m harness.plan_world --seeds N:N+1``."""
     failed = {}
     totals = dict.fromkeys(TOTALS, 0)
     for seed in range(1000):
@@ -37,11 +39,16 @@ def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
         if o.problems:
             failed[seed] = o.problems[0]
     assert not failed, f"{len(failed)} seed(s) failed, first: {next(iter(failed.items()))}"
-    assert all(n > 50 for k, n in totals.items() if k != "resized"), totals  # the faults and the cases happened
+    # the faults and the cases happened
+    assert all(n > 50 for k, n in totals.items() if k != "resized" and not k.startswith("counted_")), totals
     assert totals["resized"] > 30, totals  # a fleet's position resumed on another number of hosts
     assert totals["sharded"] > 400 and totals["loader_passes"] > 1000 and totals["probes"] > 200, totals
     assert totals["fleets"] > 250 and totals["hedged"] > 500 and totals["copies"] > 2000, totals
-    assert totals["counted"] > 50, totals  # seeds whose decodes were counted: each sample answered made once
+    # seeds whose decodes were counted (each sample read made once), and among them: a job of 16
+    # readers or more, 16 rows a rank or more, a video of 20 samples or more, a job cut off
+    assert totals["counted"] > 80, totals
+    assert totals["counted_readers"] >= 8 and totals["counted_batch"] >= 15, totals
+    assert totals["counted_long"] >= 8 and totals["counted_cut"] >= 10, totals
 
 
 def test_a_stalled_worker_is_hedged_and_the_first_copy_wins():
@@ -373,3 +380,65 @@ def test_a_bad_seed_range_is_one_usage_error_naming_the_option(capsys):
         assert e.value.code == 2
         err = capsys.readouterr().err
         assert "argument --seeds" in err and repr(bad) in err and "Traceback" not in err
+
+
+def _read_as_job(host, readers, epoch, batch, start=0, stop=None):
+    """Samples of ``epoch`` made per sample read while ``readers`` processes of one job read
+    ``start .. stop - 1`` of it, each its own client (its connection) and every ``readers``-th
+    batch, two fetches in flight each, reader ``r`` taking its answers every ``1 + r % 3`` ticks
+    (the heads spread)."""
+    stop, made = host.total if stop is None else stop, host.made.get(epoch, 0)
+    nxt = {r: start + r * batch for r in range(readers)}
+    waiting, turn = {}, 0
+    while any(p < stop for p in nxt.values()) or waiting:
+        turn += 1
+        for r in range(readers):
+            while turn % (1 + r % 3) == 0 and sum(1 for c in waiting.values() if c == r) < 2 and nxt[r] < stop:
+                host.request += 1
+                host.s.fetch(("reader", r), host.request, epoch, nxt[r], min(stop, nxt[r] + batch), host.now)
+                waiting[host.request] = r
+                nxt[r] += readers * batch
+        for f, _ in host.tick():
+            waiting.pop(f.request, None)
+    return (host.made.get(epoch, 0) - made) / (stop - start)
+
+
+@pytest.mark.parametrize("readers", [3, 6])
+def test_the_readers_of_one_job_find_what_the_others_read_not_made_again(readers):
+    """Each reader of a job (a rank, a DataLoader worker) has its own connection and its own head,
+    and reads every ``readers``-th batch: what lies ahead of the slowest head was read by the
+    others. Decode-ahead for a head skips what a reader was answered, and a decode skips it too,
+    so nothing is made again for the slow heads (1.1-1.2 made a sample read where it was)."""
+    for batch in (1, 3):
+        host = _Host(videos=20, per=3, workers=3)
+        host.s = PlanScheduler(host.m, 0, 16, ("voxels",), lookahead=16, keep_samples=0)
+        made = [_read_as_job(host, readers, epoch, batch) for epoch in range(2)]
+        assert max(made) <= 1.02, (batch, made)
+
+
+def test_a_plan_unfolding_keeps_what_its_next_positions_need():
+    """No corpus index: the first fetch waits on the videos whose slots decide its positions, and
+    several workers decode long ones at once. Their samples no position holds yet count where the
+    plan will place them (their order in production: the shuffle buffer draws a sample about
+    there), and those of the videos a pending fetch waits on are that fetch's: the ones read next
+    stay, the ones produced last go first (dropped oldest first, as samples at the plan's edge:
+    1.04-1.1 made a sample read)."""
+    for workers, batch in ((2, 1), (3, 8)):
+        host = _Host(videos=4, per=20, workers=workers, known=False)
+        host.s = PlanScheduler(host.m, 0, 16, ("voxels",), lookahead=16, keep_samples=batch)
+        made = [host.read("job", epoch, batch) for epoch in range(2)]
+        assert max(made) <= 1.02, (workers, batch, made)
+
+
+def test_a_job_rolled_back_to_the_epochs_start_finds_the_next_epochs_first_samples_kept():
+    """A job read an epoch to its end (the next epoch's first samples made ahead), then rolled back
+    to the epoch's start in new processes. While it reads the epoch again, the next epoch's
+    samples lie past its heads' end of the epoch: kept in the order the heads reach them (dropped
+    first, as of an epoch no reader reaches, they were made again)."""
+    host = _Host(videos=60, workers=2)
+    host.read("first", 0, 12, ahead=1)
+    for _ in range(20):
+        host.tick()  # the next epoch's first samples, made ahead
+    host.read("again", 0, 12, ahead=1)
+    host.read("again", 1, 12, ahead=1)
+    assert host.made[1] / host.total <= 1.02, host.made[1] / host.total  # the samples made ahead count

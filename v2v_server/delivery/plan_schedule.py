@@ -14,6 +14,9 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   first ones), while the samples made ahead and not yet fetched, with those the running tasks
   will make, stay within ``lookahead`` samples: the fetches to come find their samples made, the
   workers stay busy across an epoch's end, and a server holds a bounded number of samples.
+  Each reader (a rank, a DataLoader worker: a connection of its own) has its own head and reads
+  its own items: what lies ahead of one head another reader was answered (:meth:`Heads.read`) is
+  neither made ahead for it nor made by a decode again.
 * **Hedging.** A task that sent nothing for ``hedge_s`` while a fetch waits on it is handed to
   a second idle worker too; a sample's content is a function of (seed, epoch, id), so the first
   copy of each sample wins and the other is dropped.
@@ -31,8 +34,11 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
   after it) is kept beside that bound, up to as many samples again: it is read when the new
   job's head reaches it, where dropping it would decode its videos twice in the epoch. A sample
-  a plan still unfolding has not placed yet counts as one at the plan's edge (its first position
-  not decided), and is kept where no head moves (it is read next).
+  a plan still unfolding has not placed yet counts at its place in the production order (the
+  shuffle buffer draws a sample about there: :func:`production_places`), and is kept where no
+  head moves (it is read next); those of the videos a pending fetch waits on to unfold the plan
+  are that fetch's. The next epoch's samples, before any reader fetched it (or where only a job
+  cut off did), lie past the end of the epoch the heads read: they reach them there.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -91,6 +97,9 @@ HEADS_KEPT = 64
 #: :data:`HEAD_IDLE_S`: a sample only idle heads reach is one no reader needs soon.
 HEAD_IDLE_INTERVALS = 4
 HEAD_IDLE_S = 2.0
+#: Fetches answered a head keeps the ranges of (:meth:`Heads.read`): a reader's items ahead of
+#: the slowest reader of its job (prefetched, a step or two apart).
+ANSWERED_KEPT = 8
 
 
 
@@ -108,6 +117,19 @@ class Pending:
     epoch: int
     start: int
     stop: int
+    decided: Optional[List[Optional[SampleKey]]] = field(default=None, repr=False, compare=False)
+
+    def keys(self, plan: EpochPlan) -> List[Optional[SampleKey]]:
+        """The keys of its positions ``plan`` (its epoch's) decided, from ``start`` on (None past the
+        epoch's end); kept once every one is (what a plan says of a position never changes), so a
+        fetch waiting looks its keys up once, not at each turn."""
+        if self.decided is not None:
+            return self.decided
+        stop = self.stop if plan.complete else min(self.stop, plan.known)
+        keys = [plan.key(p) for p in range(self.start, stop)]
+        if stop == self.stop:
+            self.decided = keys
+        return keys
 
 
 @dataclass
@@ -152,6 +174,7 @@ class Head:
     stop: int
     at: float
     interval: float = 0.0
+    answered: List[Tuple[int, int]] = field(default_factory=list)  # its latest fetches answered: (start, stop)
 
 
 class Heads:
@@ -181,11 +204,21 @@ class Heads:
         for k in [k for k in self.heads if k[0] == client]:
             del self.heads[k]
 
-    def answered(self, client: Hashable, epoch: int, now: float) -> None:
-        """A fetch of ``client`` in ``epoch`` was answered at ``now``: its idle time counts from here."""
+    def answered(self, client: Hashable, epoch: int, now: float, start: int = 0, stop: int = 0) -> None:
+        """A fetch of ``client`` in ``epoch`` was answered at ``now`` with positions ``start ..
+        stop - 1``: its idle time counts from here, and the range is noted (its latest
+        :data:`ANSWERED_KEPT`)."""
         h = self.heads.get((client, epoch))
         if h is not None:
             h.at = max(h.at, now)
+            if stop > start:
+                h.answered = h.answered[-(ANSWERED_KEPT - 1):] + [(start, stop)]
+
+    def read(self, epoch: int) -> List[Tuple[int, int]]:
+        """The ranges of ``epoch`` answered lately to its readers: positions one reader of a job
+        was given, which the others never ask (each reads its own items) though they lie ahead
+        of their heads."""
+        return [r for (c, e), h in self.heads.items() if e == epoch for r in h.answered]
 
     def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
         """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
@@ -476,7 +509,7 @@ class PlanScheduler:
             if isinstance(f, Order):
                 self.orders.answered(f, now)
             else:
-                self.heads.answered(f.client, f.epoch, now)
+                self.heads.answered(f.client, f.epoch, now, f.start, f.stop)
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
@@ -494,8 +527,7 @@ class PlanScheduler:
         rows = []
         if not plan.complete and f.stop > plan.known:
             return None  # not decided yet
-        for p in range(f.start, f.stop):
-            key = plan.key(p)
+        for p, key in zip(range(f.start, f.stop), f.keys(plan)):
             if key is None:
                 rows.append(Row(p, None))
                 continue
@@ -543,22 +575,25 @@ class PlanScheduler:
 
     def _read_by_all(self, epoch: int, video: str, now: float) -> Set[Tuple[int, int]]:
         """(window, crop) of ``video``'s samples in ``epoch`` at decided positions behind every
-        moving head of the epoch (:class:`Heads`), named by no pending fetch, where no make waits
-        on the video: every reader of the epoch has read them, so a decode asked again for a
-        sample dropped before its fetch (or asked again by a reader going back) makes only the
-        samples still to be read."""
+        moving head of the epoch (:class:`Heads`) or answered lately to a reader (:meth:`Heads.read`:
+        the other readers of its job never ask them), named by no pending fetch, where no make
+        waits on the video: read already, so a decode asked again for a sample dropped before its
+        fetch (or asked again by a reader going back), or for the next items of a slow reader,
+        makes only the samples still to be read."""
         waiting = {f.client for f in self.pending}
         plan, heads, n = self.plans.get(epoch), self.heads.moving(epoch, now, waiting), self.slots.samples.get(video)
-        if plan is None or not heads or not n or any(o.epoch == epoch and o.video == video
-                                                     for o in self.orders.waiting):
+        read = self.heads.read(epoch)
+        if plan is None or not (heads or read) or not n or any(o.epoch == epoch and o.video == video
+                                                               for o in self.orders.waiting):
             return set()
-        behind = min(heads)
+        behind = min(heads, default=0)
         asked = [(f.start, f.stop) for f in self.pending if f.epoch == epoch]
         out = set()
         for i in range(n):
             key = SampleKey.at(video, i, self.manifest.crops_per_window)
             p = plan.position(key)
-            if p is not None and p < behind and not any(a <= p < b for a, b in asked):
+            if p is not None and (p < behind or any(a <= p < b for a, b in read)) and \
+                    not any(a <= p < b for a, b in asked):
                 out.add((key.window, key.crop))
         return out
 
@@ -691,9 +726,8 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     for f in s.pending:
         plan = s.plan(f.epoch)
         heads.setdefault(f.epoch, []).append(f.stop)
-        for p in range(f.start, min(f.stop, plan.known)):
-            key = plan.key(p)
-            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+        for p, key in zip(range(f.start, f.stop), f.keys(plan)):
+            if key is not None and (f.epoch, key) not in store and (f.epoch, key) not in failed:
                 ek = (f.epoch, key.video)
                 waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
         if not plan.complete and f.stop > plan.known:
@@ -710,6 +744,12 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
     keep = set(heads) | {e for e, _ in runs}
+    read = {e: s.heads.read(e) for e in heads}
+
+    def was_read(e: int, key: Optional[SampleKey]) -> bool:  # answered to a reader still reading (Heads.read)
+        p = None if key is None or not read.get(e) else s.plans[e].position(key)
+        return p is not None and any(a <= p < b for a, b in read[e])
+
     for epoch, stop in sorted((e, h) for e, hs in heads.items() for h in set(hs)):
         if budget <= 0:  # before positions_after, which may build the next epoch's plan
             break
@@ -717,13 +757,40 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
             if budget <= 0 or (e != epoch and (e in heads or e in live)):
                 break
             ek, n = (e, video), slots.samples.get(video)
-            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed or was_read(e, key):
                 continue
             if key is None and n is not None and made.get(ek, 0) >= n:
                 continue
             ahead.append(ek)
             budget -= slots.expected(video) - made.get(ek, 0)
     return sorted(waited, key=waited.__getitem__), ahead
+
+
+def production_places(plan: EpochPlan, keys: Set[SampleKey], slots: Slots) -> Iterator[Tuple[SampleKey, int]]:
+    """(key, place) of ``keys``, samples no decided position of ``plan`` holds yet: each one's index
+    in the production order, at least the plan's edge (``known``), the samples of videos whose
+    slots are not known counted as :meth:`Slots.expected` gives. A shuffle buffer draws a sample
+    at about its production index (it enters the buffer that many positions before, and is drawn
+    a buffer's worth of positions later on average), so the order of the places is the order in
+    which the plan reaches the samples, the ones produced last last."""
+    if not keys:
+        return
+    counted, start = plan.counted
+    starts: Dict[str, int] = {}
+    wanted, i = {k.video for k in keys}, counted
+    while len(starts) < len(wanted) and i < len(plan.videos):  # the videos not counted, in production order
+        v = plan.videos[i]
+        if v in wanted:
+            starts[v] = start
+        start += slots.expected(v)
+        i += 1
+    for k in keys:
+        n = plan._video_number(k.video)
+        if n is not None and n < counted:
+            first = plan._starts[n]
+        else:
+            first = starts.get(k.video, start)
+        yield k, max(plan.known, first + k.ordinal(plan.crops_per_window))
 
 
 def trim(s: "PlanScheduler", now: float) -> None:
@@ -740,27 +807,43 @@ def trim(s: "PlanScheduler", now: float) -> None:
     over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
-    named = set()
+    named, unfolds = set(), set()
     for f in s.pending:
         plan = s.plan(f.epoch)
-        named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
+        named.update((f.epoch, key) for key in f.keys(plan) if key is not None)
+        if not plan.complete and f.stop > plan.known:
+            unfolds.add(f.epoch)
+    if unfolds:  # a fetch of positions not decided yet names the videos whose slots decide them (unfolding)
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(s.store) + list(s.failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        waited = {ek for f in s.pending if f.epoch in unfolds
+                  for ek in unfolding(s.plans[f.epoch], f.stop, s.slots, made)}
+        named.update(sk for sk in s.store if (sk[0], sk[1].video) in waited and sk not in s.fetched)
     # what a pending fetch names is a batch asked now, not made ahead: the bound is on the rest
     over -= sum(1 for sk in named if sk in s.store and sk not in s.fetched)
     if over <= 0:
         return
     live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
-    asked = set(named)
-    named |= s.orders.named(list(s.store), now)
-    undecided = set()  # samples of a plan still unfolding past its decided positions: read from its edge on
-    for e in live & set(s.plans):
-        keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
-        undecided.update((e, k) for k in s.plans[e].undecided(keys))
     waiting = {f.client for f in s.pending}
     heads = {e: s.heads.moving(e, now, waiting) for e in live}
+    # the epoch after one read, where no head moves (none fetched it yet, or a job cut off did): the
+    # heads of the epoch before reach it past their end (its first positions are made ahead of
+    # them, positions_after)
+    for e in sorted(live):
+        if heads.get(e) and not heads.get(e + 1) and e + 1 in s.plans and s.plans[e].complete:
+            heads[e + 1] = [h - len(s.plans[e]) for h in heads[e]]
+            live.add(e + 1)
+    asked = set(named)
+    named |= s.orders.named(list(s.store), now)
+    undecided = {}  # samples of a plan still unfolding past its decided positions -> where it places them, about
+    for e in live & set(s.plans):
+        keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
+        undecided.update(((e, k), p) for k, p in production_places(s.plans[e], s.plans[e].undecided(keys), s.slots))
 
-    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample as one at the plan's edge
+    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:  # an undecided sample at its place in production
         plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
-        p = None if plan is None else plan.known if sk in undecided else plan.position(sk[1])
+        p = None if plan is None else undecided[sk] if sk in undecided else plan.position(sk[1])
         return None if p is None else min((p - h for h in stops if h <= p), default=None)
 
     named |= {sk for sk in undecided if reached(sk) is None}  # the plan's edge, where no head moves: read next
