@@ -324,3 +324,21 @@ def test_the_plan_message_carries_the_servers_instance_checked_at_the_edge():
     for bad in ("", "x" * (MAX_INSTANCE + 1), 7, ["a"]):
         with pytest.raises(WireError, match="plan: field 'instance'"):
             PlanInfo.from_wire({**PlanInfo(ident, 4, {}).to_wire(), "instance": bad})
+
+
+def test_a_videos_production_start_is_the_samples_of_the_videos_produced_before_it():
+    slots = {"a.mp4": 3, "b.mp4": None, "c.mp4": 2, "d.mp4": 0}
+    plan = EpochPlan(Manifest.of(slots, 2), 7, 1, 4)
+    order = plan.videos
+    first_unknown = order.index("b.mp4")
+    starts, n = {}, 0
+    for v in order[:first_unknown]:
+        starts[v] = n
+        n += slots[v] * 2
+    assert {v: plan.production_start(v) for v in order} == {v: starts.get(v) for v in order}
+    plan.learn({**slots, "b.mp4": 1})
+    n = 0
+    for v in order:
+        assert plan.production_start(v) == n
+        n += {**slots, "b.mp4": 1}[v] * 2
+    assert plan.production_start("nope.mp4") is None

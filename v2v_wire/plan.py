@@ -288,6 +288,13 @@ class EpochPlan:
         :attr:`videos`, whose slots are known."""
         return len(self._starts) - 1, self._starts[-1]
 
+    def production_start(self, video: str) -> Optional[int]:
+        """``video``'s first sample's index in the production order (samples, from 0), or None
+        for a video not counted yet (its slots, or an earlier video's, not known) or not in
+        this epoch."""
+        i = self._video_number(video)
+        return self._starts[i] if i is not None and i < len(self._starts) - 1 else None
+
     def undecided(self, keys: Iterable[SampleKey]) -> Set[SampleKey]:
         """Those of ``keys`` (samples of this epoch's videos) that no decided position holds yet:
         of a video not counted, or counted and still in the buffer or past it."""

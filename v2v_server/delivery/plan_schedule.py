@@ -785,10 +785,8 @@ def production_places(plan: EpochPlan, keys: Set[SampleKey], slots: Slots) -> It
         start += slots.expected(v)
         i += 1
     for k in keys:
-        n = plan._video_number(k.video)
-        if n is not None and n < counted:
-            first = plan._starts[n]
-        else:
+        first = plan.production_start(k.video)
+        if first is None:
             first = starts.get(k.video, start)
         yield k, max(plan.known, first + k.ordinal(plan.crops_per_window))
 
