@@ -59,7 +59,7 @@ import numpy as np
 
 from v2v_wire.commands import json_output_problem, write_whole
 from v2v_client.fleet_pass import STEAL_S
-from v2v_wire.fleet import AHEAD_DECODES, RateMeter, Router, video_key
+from v2v_wire.fleet import AHEAD_DECODES, HEDGE_S, SLACK, RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
 from harness.hpa import CPU_INITIALIZATION_S, SYNC_S, Hpa, HpaSpec, PodSample
@@ -100,8 +100,8 @@ class Fleet:
     stall_s: float = 10.0
     step: int = 96
     lookahead: Optional[int] = None
-    hedge_s: float = 10.0
-    slack: float = 0.25
+    hedge_s: float = HEDGE_S
+    slack: float = SLACK
     ranks: int = 1
     seed: int = 0
 

@@ -52,7 +52,7 @@ from typing import Dict, Iterator, List, Optional, Tuple
 import numpy as np
 import zmq
 
-from v2v_wire.fleet import Router
+from v2v_wire.fleet import HEDGE_S, Router
 from v2v_wire.plan import Manifest, PlanIdentity, PlanMismatch
 from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_HEADER_BYTES
@@ -66,9 +66,6 @@ __all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fl
 
 log = logging.getLogger("v2v.client")
 
-#: Seconds a host may answer nothing while the reader waits on it before its videos are asked of
-#: the next hosts of their rankings too (``Router``'s ``hedge_s``).
-HEDGE_S = 10.0
 #: Seconds between resolutions of the fleet's endpoint (a Kubernetes headless Service's name).
 RESOLVE_S = 5.0
 #: Seconds a host may take to answer what a pass asks the fleet once (the manifest, before the
