@@ -363,6 +363,15 @@ class Slots:
         return self._total
 
 
+def made_by_video(s: "PlanScheduler") -> Dict[Tuple[int, str], int]:
+    """(epoch, video) -> the samples of it scheduler ``s`` holds made or failed (its store and
+    its failed samples)."""
+    made: Dict[Tuple[int, str], int] = {}
+    for (e, k) in list(s.store) + list(s.failed):
+        made[(e, k.video)] = made.get((e, k.video), 0) + 1
+    return made
+
+
 def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int, str], int]) -> List[Tuple[int, str]]:
     """(epoch, video) of the next videos of ``plan``'s production order whose slots would decide
     its positions up to ``stop`` (by their expected samples), less those whose samples are all
@@ -715,9 +724,7 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
     have left the store)."""
     store, failed, runs, slots = s.store, s.failed, s.runs, s.slots
-    made: Dict[Tuple[int, str], int] = {}
-    for (e, k) in list(store) + list(failed):
-        made[(e, k.video)] = made.get((e, k.video), 0) + 1
+    made = made_by_video(s)
     waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
     live = {e: stop for e, stop in s.fetched_to.items() if e in s.plans and now - s.fetched_at[e] < IDLE_S}
     waiting = {f.client for f in s.pending}
@@ -812,9 +819,7 @@ def trim(s: "PlanScheduler", now: float) -> None:
         if not plan.complete and f.stop > plan.known:
             unfolds.add(f.epoch)
     if unfolds:  # a fetch of positions not decided yet names the videos whose slots decide them (unfolding)
-        made: Dict[Tuple[int, str], int] = {}
-        for (e, k) in list(s.store) + list(s.failed):
-            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        made = made_by_video(s)
         waited = {ek for f in s.pending if f.epoch in unfolds
                   for ek in unfolding(s.plans[f.epoch], f.stop, s.slots, made)}
         named.update(sk for sk in s.store if (sk[0], sk[1].video) in waited and sk not in s.fetched)
