@@ -306,6 +306,7 @@ class _Host:
         self.s = PlanScheduler(self.m, 0, 64, ("voxels",), lookahead=64, keep_samples=12)
         self.per, self.workers, self.total = per, workers, videos * per
         self.now, self.tasks, self.request, self.made = 0.0, {}, 0, {}
+        self.decodes = {}  # epoch -> decodes started (a video's task, whatever it skips)
 
     def _made(self, epoch):
         self.made[epoch] = self.made.get(epoch, 0) + 1
@@ -316,6 +317,7 @@ class _Host:
         for w in range(self.workers):
             if w not in self.tasks and (t := self.s.task_for(w, self.now)) is not None:
                 self.tasks[w] = [t, iter([i for i in range(self.per) if (i, 0) not in t.skip])]
+                self.decodes[t.epoch] = self.decodes.get(t.epoch, 0) + 1
             if w in self.tasks:
                 t, todo = self.tasks[w]
                 i = next(todo, None)
@@ -361,13 +363,19 @@ def test_a_job_started_after_another_was_cut_off_mid_epoch_makes_each_sample_onc
     videos are decoded (a corpus without an index), what the cut-off job left deciding the plan's
     next positions counts as samples at the plan's edge: kept while far, dropped furthest first
     (kept unconditionally, it held the store and the new job's samples were dropped: 1.2 made a
-    sample read)."""
+    sample read). What the cut-off job was given is not taken as read by the new job's readers
+    (taken so, decodes ahead for the new job skipped it, and each of those videos was decoded
+    again when the new job got there: 175 decodes of 150 videos)."""
     for known in (True, False):
         for cut in (100, 700, 1400):
             host = _Host(known=known)
             host.read("cut off", 0, 12, 0, cut, ahead=3)
+            before = host.decodes[0]
             made = [host.read("new", epoch, 12, ahead=1) for epoch in range(2)]
             assert max(made) <= 1.02, (known, cut, made)
+            # each video decoded once for the new job: none again for what the cut-off job was given
+            decodes = [host.decodes[0] - before, host.decodes[1]]
+            assert max(decodes) <= 1.02 * len(host.m.slots), (known, cut, decodes)
             # kept, made ahead, a video, the batches asked, and the cut-off job's stock beside
             assert len(host.s.store) <= 12 + 2 * 64 + 10 + 2 * 12, (known, cut)
 

@@ -174,7 +174,8 @@ class Head:
     stop: int
     at: float
     interval: float = 0.0
-    answered: List[Tuple[int, int]] = field(default_factory=list)  # its latest fetches answered: (start, stop)
+    answered: List[Tuple[int, int, float]] = field(default_factory=list)  # its latest fetches answered: (start, stop, s)
+    since: float = 0.0  # its first fetch (s)
 
 
 class Heads:
@@ -190,7 +191,7 @@ class Heads:
         """``client`` asked positions up to ``stop`` of ``epoch`` at ``now`` (s)."""
         h = self.heads.pop((client, epoch), None)
         if h is None:
-            h = Head(stop, now)
+            h = Head(stop, now, since=now)
         else:
             gap = max(0.0, now - h.at)
             # the furthest stop: a reader's fetches in flight, and one asked again, end anywhere behind it
@@ -212,19 +213,26 @@ class Heads:
         if h is not None:
             h.at = max(h.at, now)
             if stop > start:
-                h.answered = h.answered[-(ANSWERED_KEPT - 1):] + [(start, stop)]
+                h.answered = h.answered[-(ANSWERED_KEPT - 1):] + [(start, stop, now)]
 
-    def read(self, epoch: int) -> List[Tuple[int, int]]:
+    def read(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[Tuple[int, int]]:
         """The ranges of ``epoch`` answered lately to its readers: positions one reader of a job
         was given, which the others never ask (each reads its own items) though they lie ahead
-        of their heads."""
-        return [r for (c, e), h in self.heads.items() if e == epoch for r in h.answered]
+        of their heads. Only those answered since the newest moving head's first fetch: the
+        readers of one job start together, so a head that appeared later is a new job's (one
+        started after another was cut off), which reads what the old one was given."""
+        live = self._moving(epoch, now, waiting)
+        newest = max((h.since for h in live), default=float("-inf"))
+        return [(a, b) for (c, e), h in self.heads.items() if e == epoch for a, b, at in h.answered if at >= newest]
 
     def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
         """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
         clients (a fetch of theirs is pending), and those asked or answered within
         :data:`HEAD_IDLE_INTERVALS` of their intervals and :data:`HEAD_IDLE_S`."""
-        return [h.stop for (c, e), h in self.heads.items()
+        return [h.stop for h in self._moving(epoch, now, waiting)]
+
+    def _moving(self, epoch: int, now: float, waiting: Set[Hashable]) -> List[Head]:
+        return [h for (c, e), h in self.heads.items()
                 if e == epoch and (c in waiting or now - h.at <= max(HEAD_IDLE_S, HEAD_IDLE_INTERVALS * h.interval))]
 
 
@@ -591,7 +599,7 @@ class PlanScheduler:
         makes only the samples still to be read."""
         waiting = {f.client for f in self.pending}
         plan, heads, n = self.plans.get(epoch), self.heads.moving(epoch, now, waiting), self.slots.samples.get(video)
-        read = self.heads.read(epoch)
+        read = self.heads.read(epoch, now, waiting)
         if plan is None or not (heads or read) or not n or any(o.epoch == epoch and o.video == video
                                                                for o in self.orders.waiting):
             return set()
@@ -751,7 +759,7 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
     keep = set(heads) | {e for e, _ in runs}
-    read = {e: s.heads.read(e) for e in heads}
+    read = {e: s.heads.read(e, now, waiting) for e in heads}
 
     def was_read(e: int, key: Optional[SampleKey]) -> bool:  # answered to a reader still reading (Heads.read)
         p = None if key is None or not read.get(e) else s.plans[e].position(key)
