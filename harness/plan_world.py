@@ -205,11 +205,6 @@ class World:
         shards = rng.choice([1, 1, 2, 3, 4])
         self.servers = [Server(i, select_shard(sorted(self.slots), i, shards)) for i in range(shards)]
         pool = rng.randint(1, 3)
-        # a plan unfolding whose decodes at once make more than a server keeps (judge_decodes)
-        longest, kept = max(self.slots.values(), default=0) * self.kpw, \
-            self.settings["keep_samples"] + max(self.settings["lookahead"], self.buffer)
-        self.overflows = len(self.index) < len(self.slots) and kept + longest < min(pool * longest,
-                                                                                   sum(self.slots.values()) * self.kpw)
         self.next_worker = 0
         for s in self.servers:
             self.start(s, pool)
@@ -399,16 +394,9 @@ class World:
         * an output was widened: what was made lacks it, and is made again;
         * the servers make ahead fewer samples than a shuffle buffer (``lookahead`` < the buffer,
           a setting ``PlanServer`` never makes): a decode makes a whole video, whose samples the
-          buffer spreads past what the store may keep of them;
-        * (a known gap) the corpus index lacks some videos' slots and the store keeps fewer
-          samples (``keep_samples`` + ``lookahead`` or a buffer, + the longest video) than the
-          workers decode at once (a video each) and than the corpus holds: the first fetch waits
-          on the videos whose slots unfold the plan, counted at the smallest size known while
-          none is, so every worker starts one, and a store of fewer drops some that are read next
-          (seed 959 made 1.07 a sample read; a server of 4 videos of 40 samples, 3 workers and a
-          buffer of 1 made 1.48)."""
+          buffer spreads past what the store may keep of them."""
         out, s = self.out, self.settings
-        if self.concurrent or out.restarts or out.widened or s["lookahead"] < self.buffer or self.overflows:
+        if self.concurrent or out.restarts or out.widened or s["lookahead"] < self.buffer:
             return
         out.counted = 1
         out.counted_readers = int(any(j.most_readers >= 16 for j in self.jobs))

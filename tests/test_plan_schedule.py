@@ -438,6 +438,19 @@ def test_a_plan_unfolding_keeps_what_its_next_positions_need():
         assert max(made) <= 1.02, (workers, batch, made)
 
 
+def test_long_videos_of_unknown_slots_decoded_at_once_while_the_plan_unfolds_are_kept_until_read():
+    """No corpus index and a small store: the first fetch waits on the plan to unfold, each worker
+    takes a video of 40 samples, more than the store's bound holds. They are that fetch's, read in
+    production order: kept past the bound until fetched (dropped, they were made again: 1.23 made
+    a sample read with 2 workers, 1.48 with 3)."""
+    for workers, batch in ((2, 1), (3, 1), (3, 4)):
+        host = _Host(videos=4, per=40, workers=workers, known=False)
+        host.s = PlanScheduler(host.m, 0, 1, ("voxels",), lookahead=1, keep_samples=batch)
+        made = [host.read("job", epoch, batch) for epoch in range(2)]
+        assert max(made) <= 1.02, (workers, batch, made)
+        assert len(host.s.store) <= batch + 1 + workers * 40 + batch, (workers, batch)
+
+
 def test_a_job_rolled_back_to_the_epochs_start_finds_the_next_epochs_first_samples_kept():
     """A job read an epoch to its end (the next epoch's first samples made ahead), then rolled back
     to the epoch's start in new processes. While it reads the epoch again, the next epoch's

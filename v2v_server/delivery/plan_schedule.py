@@ -24,7 +24,9 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   fetched first out, while there are at most ``keep_samples`` of them (another job, a fetch asked
   again after a lost reply). Samples never fetched go once the store holds more than
   ``keep_samples + lookahead`` and the largest video's samples besides those pending fetches
-  name (a batch asked is not made ahead), those no pending fetch names, in the order readers
+  name (a batch asked is not made ahead) and those of the videos of unknown slots decoded while a
+  fetch waited on the plan to unfold (each worker took one: they are that fetch's, read in
+  production order), those no pending fetch names, in the order readers
   need them last (Belady's rule): first those of epochs no fetch named for :data:`IDLE_S` (a job
   that left), then those no moving head reaches (behind every reader's last fetch, or reached by
   idle heads only: a job cut off), then the furthest from the nearest moving head before them
@@ -435,6 +437,9 @@ class PlanScheduler:
         self.heads = Heads()
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         self.passed: Dict[Tuple[int, str], Set[Tuple[int, int]]] = {}  # (epoch, video) asked again -> made before
+        # (epoch, video) of unknown slots decoded while a fetch waited on the plan to unfold: its
+        # samples are that fetch's, kept past the bound until fetched (trim)
+        self.unfolded: Set[Tuple[int, str]] = set()
         # tasks started; samples made; EpochPlans built (one per epoch read, however many at once)
         self._task_ids = self.samples_made = self.plans_built = 0
         self.epoch_made: Dict[int, int] = {}  # epoch -> samples made of it, the EPOCHS_COUNTED latest
@@ -584,6 +589,10 @@ class PlanScheduler:
             run = self.runs[ek] = Run(epoch, video, made=self.passed.pop(ek, set()))
         run.copies[tid], run.progress[tid] = worker, now
         self.task_run[tid] = ek
+        plan = self.plans.get(epoch)
+        if self.slots.samples.get(video) is None and plan is not None and not plan.complete and \
+                any(f.epoch == epoch and f.stop > plan.known for f in self.pending):
+            self.unfolded.add(ek)
         skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
         skip |= run.made  # made by the copy it hedges, and read already: not made again
         skip |= self._read_by_all(epoch, video, now)
@@ -817,10 +826,16 @@ def trim(s: "PlanScheduler", now: float) -> None:
         del s.store[sk]
         s.fetched.discard(sk)
     bound = max(s.lookahead, s.shuffle_buffer)
+    unfetched = {(e, k.video) for (e, k) in s.store if (e, k) not in s.fetched}
+    s.unfolded = {ek for ek in s.unfolded if ek in s.runs or ek in unfetched}
     over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
-    named, unfolds = set(), set()
+    # a decode a plan's unfolding started, of a size not known: each worker took one, whose
+    # samples the plan reaches in production order (dropped, they were made again: 1.2-1.5 made a
+    # sample read with 4 videos of 40 samples and 2-3 workers)
+    named = {sk for sk in s.store if (sk[0], sk[1].video) in s.unfolded and sk not in s.fetched}
+    unfolds = set()
     for f in s.pending:
         plan = s.plan(f.epoch)
         named.update((f.epoch, key) for key in f.keys(plan) if key is not None)
