@@ -45,7 +45,7 @@ from v2v_client.plan_state import _rows
 from v2v_server.delivery.plan_orders import Order
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity, epoch_steps
 from v2v_wire.plan_messages import (MANIFEST_PART, Fetch, Make, ManifestAsk, ManifestPart, Moved, PlanAsk, PlanInfo,
-                                    Refused, Rows, decode_plan_client, plan_server_message)
+                                    Refused, Rows, Withdraw, decode_plan_client, plan_server_message)
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, pack, unpack
 
 #: Seconds of the readers' clock a tick (a worker makes a sample a tick).
@@ -82,6 +82,7 @@ class Host:
     up: bool = True
     stalled_until: int = 0
     inbox: list = field(default_factory=list)
+    withdraws: bool = True  # takes a Withdraw (an older server does not, and refuses one)
 
 
 class Link:
@@ -148,7 +149,7 @@ class Net:
         """What ``host`` serves (``PlanServer``'s answer to ``plan_ask``)."""
         return PlanInfo(self.identity(host), self.world.samples_of(host, 0),
                         dict(STREAM, feed={"workers": len(host.workers)}), queued=host.scheduler.queued(),
-                        rate=self.rate(host))
+                        rate=self.rate(host), withdraws=host.withdraws)
 
     @staticmethod
     def rate(host: Host) -> Optional[float]:
@@ -217,6 +218,12 @@ class Net:
         for reader, msg in host.inbox:
             if isinstance(msg, PlanAsk):
                 self.post(reader, (host.name, self.info(host).to_wire(), []))
+                continue
+            if isinstance(msg, Withdraw):  # PlanServer's: another host's copy came first
+                if not host.withdraws:
+                    self.out.problems.append(f"{host.name}: a Withdraw sent to a server that does not take one")
+                self.out.withdrawn += 1
+                s.withdraw(lambda client, reader=reader: client[0] == reader, msg.request)
                 continue
             problem = self.identity(host).problem(msg.plan)
             if problem or not isinstance(msg, Make):
@@ -337,7 +344,9 @@ class FleetWorld:
         """A host starts under a new name, which the fleet's endpoint resolves to from now on."""
         self.names += 1
         name = f"tcp://10.0.{self.names // 250}.{self.names % 250 + 1}:5555"
-        host = self.net.hosts[name] = Host(name, sorted(self.world.slots))
+        # a quarter of the hosts are older servers, which take no Withdraw (drawn apart from the world's stream)
+        older = hashlib.sha256(f"{self.world.seed} {name}".encode()).digest()[0] < 64
+        host = self.net.hosts[name] = Host(name, sorted(self.world.slots), withdraws=not older)
         self.world.start(host, self.pool)
         self.dns.append(name)
         self.world.out.big_fleets = max(self.world.out.big_fleets, int(len(self.up()) >= 8))

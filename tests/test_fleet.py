@@ -341,18 +341,20 @@ def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
 
     from v2v_client.fleet_pass import Pass
     from v2v_wire.plan import Manifest, PlanIdentity
-    from v2v_wire.plan_messages import Fetch, Make
+    from v2v_wire.plan_messages import Fetch, Make, Withdraw
 
     m = Manifest.of(slots)
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
     fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, ahead=None, links={},
                             like=None, endpoint=",".join(hosts), left_out={}, out_for_pass={}, changed={},
-                            last_served=None, stream=stream, join=lambda ep, info, now: None)
+                            last_served=None, stream=stream, join=lambda ep, info, now: None,
+                            withdraws={*hosts, *others})
     sent = []
     for h in [*hosts, *others]:
         fleet.links[h] = SimpleNamespace(ids=itertools.count(1), compression="none",
-                                         _send=lambda header, h=h: sent.append((h, Make.from_wire(header) if (
-                                             header["type"] == "make") else header["type"])))
+                                         _send=lambda header, h=h: sent.append((h, {
+                                             "make": Make, "withdraw": Withdraw}[header["type"]].from_wire(header) if (
+                                             header["type"] in ("make", "withdraw")) else header["type"])))
     first = Fetch(0, 0, start, stop, ("voxels",), plan)
     read = Pass(fleet, m, first, 1, 5.0, now=0.0)
     read.add(0, first)
@@ -536,3 +538,51 @@ def test_a_backup_request_or_hedge_never_goes_to_a_host_that_refused_the_video()
     assert silent_first().hedges([(0, video, 10)], 30.0, {video: [hedge]}) == \
         [(0, video, next(h for h in others if h != hedge))]
     assert silent_first().hedges([(0, video, 10)], 30.0, {video: others}) == []
+
+
+def test_a_withdraw_and_the_servers_word_that_it_takes_one_are_checked_at_the_edge():
+    """``Withdraw`` reads back as sent and names a bad ``request``; a server's ``withdraws`` is a
+    bool, False where an older server says nothing (a reader never sends it one)."""
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import PlanInfo, Withdraw, WireError, decode_plan_client
+    from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, pack
+
+    assert decode_plan_client(pack({"v": PROTOCOL_VERSION, **Withdraw(7).to_wire()}), MAX_CLIENT_MSG) == Withdraw(7)
+    for bad in (-1, 1.5, "7", None, True):
+        with pytest.raises(WireError, match="'request'"):
+            Withdraw.from_wire({"type": "withdraw", "request": bad})
+    info = PlanInfo(PlanIdentity("m", "r", 0, 1), None, {}, withdraws=True)
+    assert PlanInfo.from_wire(info.to_wire()).withdraws
+    assert not PlanInfo.from_wire({k: v for k, v in info.to_wire().items() if k != "withdraws"}).withdraws
+    for bad in (1, "yes", None):
+        with pytest.raises(WireError, match="'withdraws'"):
+            PlanInfo.from_wire({**info.to_wire(), "withdraws": bad})
+
+
+def test_a_fleet_pass_withdraws_a_copy_once_another_hosts_answer_came_first():
+    """A video the head waits on is asked of a slow host and, as a backup request, of an idle one;
+    the idle host answers first: the pass withdraws its make of the slow host, which takes a
+    ``Withdraw`` (a host that does not is sent none)."""
+    from v2v_client.fleet_pass import STEAL_S
+    from v2v_wire.plan_messages import Rows, Withdraw
+
+    def withdrawn(takes):
+        v = VIDEOS[0]
+        slow, fast = rank_hosts(v, HOSTS[:2])
+        read, sent = _fleet_pass({v: 1}, [slow], others=[fast], stop=1)
+        read.fleet.withdraws = {slow} if takes else set()
+        read.router.heard(slow, 0.0, rate=0.1)
+        read.ask_window(0.0)
+        (h, first), = sent
+        read.router.join(fast, 0.5)
+        read.router.heard(fast, 0.5, rate=10.0, queued=0)
+        read.rescue(STEAL_S + 0.5)
+        (h2, copy), = [(h, m) for h, m in sent[1:] if not isinstance(m, str)]
+        assert (h, h2) == (slow, fast)
+        read.receive(fast, Rows(copy.request, 0, 0, [f"{v}#0"], [True], [{"padding": "a test"}], [], 1, 1), [],
+                     STEAL_S + 1.0)
+        return [(h, m) for h, m in sent if isinstance(m, Withdraw)], (slow, Withdraw(first.request))
+
+    got, want = withdrawn(True)
+    assert got == [want]
+    assert withdrawn(False)[0] == []

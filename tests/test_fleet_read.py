@@ -164,3 +164,35 @@ def test_a_make_the_plan_cannot_take_is_refused_in_one_line_and_the_server_serve
         last = answer(Make(4, 0, video, (int(window),), OUTPUTS, plan))
         assert isinstance(last, Rows)
         assert last.rate > 0  # the host's own measure of its decode capacity, what readers weigh it by
+
+
+@pytest.mark.timeout(600)
+def test_a_make_withdrawn_while_it_waits_is_never_decoded(tmp_path, videos):
+    """One worker decodes the first of three makes; the third is withdrawn while it waits (a
+    reader had its samples from another host first): the second is answered, the third never,
+    and the host decodes the two videos only (what its feed says it made)."""
+    import time
+
+    from v2v_client.fetch import Link
+    from v2v_client.plan_dataset import open_stream
+    from v2v_wire.plan_messages import Make, Rows, Withdraw
+
+    root, want, base = setup(tmp_path, videos)
+    firsts = list(dict.fromkeys(s.split("#")[0] for s in want))[:3]
+    with ServeProcess(base) as one, Link(one.endpoint, 60) as link:
+        info = link.ask()
+        assert info.withdraws  # it says it takes a Withdraw: a reader sends one to no other server
+        for request, video in enumerate(firsts, 1):
+            link._send(Make(request, 0, video, (0,), OUTPUTS, info.plan).to_wire())
+        link._send(Withdraw(3).to_wire())
+        answered, end = set(), time.monotonic() + 120
+        while len(answered) < 2 and time.monotonic() < end:
+            got = link._recv(end)
+            if got is not None and isinstance(got[0], Rows):
+                answered.add(got[0].request)
+        assert answered == {1, 2}
+        time.sleep(3)  # the worker is idle: nothing waits on the third video
+        assert link._recv(time.monotonic() + 1) is None
+        feed = open_stream(one.endpoint, timeout_s=30).server_feed()
+        samples = {v: sum(1 for s in want if s.split("#")[0] == v) for v in firsts}  # a decode makes all of a video's
+        assert feed["samples_made_by_epoch"].get(0) == samples[firsts[0]] + samples[firsts[1]]

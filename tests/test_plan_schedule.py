@@ -44,6 +44,7 @@ def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
     assert totals["resized"] > 30, totals  # a fleet's position resumed on another number of hosts
     assert totals["sharded"] > 400 and totals["loader_passes"] > 1000 and totals["probes"] > 200, totals
     assert totals["fleets"] > 250 and totals["hedged"] > 500 and totals["copies"] > 2000, totals
+    assert totals["withdrawn"] > 1000, totals  # a copy whose samples came first from another host, withdrawn
     # seeds whose decodes were counted (each sample read made once), and among them: a job of 16
     # readers or more, 16 rows a rank or more, a video of 20 samples or more, a job cut off
     assert totals["counted"] > 80, totals

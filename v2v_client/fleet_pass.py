@@ -21,7 +21,8 @@ import numpy as np
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.plan import EpochPlan, Manifest
-from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows,
+                                     Withdraw)
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import BrokenPeer, PlanServerError, _with_padding, wait_readable
@@ -359,10 +360,12 @@ class Pass:
             self.fleet.made[video] = ep
         if self.fleet.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
             self.fleet.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
-        for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
+        for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got: withdrawn where they wait
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
                 self.flight.pop(hr, None)
+                if h in self.fleet.withdraws and h in self.fleet.links:
+                    self.fleet.links[h]._send(Withdraw(hr[1]).to_wire())
         self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate,
                              msg.queued)
         if msg.rate:

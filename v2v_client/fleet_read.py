@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict, Iterator, List, Optional, Tuple
+from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import numpy as np
 import zmq
@@ -284,6 +284,7 @@ class Fleet:
         self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
         self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
         self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
+        self.withdraws: Set[str] = set()  # hosts whose PlanInfo says they take a Withdraw
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
         self.manifest: Optional[Manifest] = None
@@ -322,6 +323,8 @@ class Fleet:
             self.same[ep] = kept
             return
         self.stream = self.stream or info.stream
+        if info.withdraws:
+            self.withdraws.add(ep)
         link = self._link(ep)
         codecs = info.stream.get("codecs", ())
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)

@@ -30,7 +30,7 @@ from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 __all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "REFUSALS",
            "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "MAX_MAKE_PATH",
-           "MAX_MAKE_SAMPLES", "MAX_INSTANCE", "MAX_HOST_NAME", "Moved",
+           "MAX_MAKE_SAMPLES", "MAX_INSTANCE", "MAX_HOST_NAME", "Moved", "Withdraw",
            "decode_plan_client", "plan_server_message", "old_client_answer"]
 
 #: Largest element count of any array in a message.
@@ -138,6 +138,7 @@ class PlanInfo:
         rate: the server's decode capacity in samples/s, as :class:`Rows` says it (None: not
             measured yet, or an older server): a reader that joins a fleet at work, or that
             pings a host, knows it before asking it anything.
+        withdraws: the server takes :class:`Withdraw` (False: an older server, never sent one).
 
     Its ``stream``'s ``feed.workers``, where said, is an int from 1 to :data:`MAX_WORKERS`
     (:attr:`workers`).
@@ -149,6 +150,7 @@ class PlanInfo:
     instance: Optional[str] = None
     queued: Optional[int] = None
     rate: Optional[float] = None
+    withdraws: bool = False
 
     @property
     def workers(self) -> int:
@@ -158,7 +160,7 @@ class PlanInfo:
     def to_wire(self) -> dict:
         return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
                 "changes": dict(self.plan.changes), "instance": self.instance, "queued": self.queued,
-                "rate": self.rate}
+                "rate": self.rate, "withdraws": self.withdraws}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -182,8 +184,11 @@ class PlanInfo:
         if instance is not None and (not isinstance(instance, str) or not 0 < len(instance) <= MAX_INSTANCE):
             raise WireError(f"plan: field 'instance' must be nil or a string of 1 to {MAX_INSTANCE} characters, "
                             f"got {instance!r:.80}")
+        withdraws = h.get("withdraws", False)
+        if not isinstance(withdraws, bool):
+            raise WireError(f"plan: field 'withdraws' must be a bool, got {withdraws!r:.80}")
         return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"], instance,
-                   _optional_int(h, "queued"), _optional_rate(h, "plan"))
+                   _optional_int(h, "queued"), _optional_rate(h, "plan"), withdraws)
 
 
 @dataclass(frozen=True)
@@ -281,6 +286,24 @@ class Moved:
             raise WireError(f"moved: field 'host' must be a host name of 1 to {MAX_HOST_NAME} characters, "
                             f"got {host!r:.80}")
         return cls(_int(h, "request"), host)
+
+
+@dataclass(frozen=True)
+class Withdraw:
+    """Client -> server: this client's make ``request`` is not needed any more (a reader of a
+    fleet had its samples from another host first: a backup request's, ``v2v_wire.fleet.Router.copy``);
+    dropped while it waits, so a host does not decode a video no reader will read. No answer: a
+    make answered or started already goes on. Sent only to a server whose :class:`PlanInfo`
+    says ``withdraws`` (an older one refuses the type)."""
+
+    request: int
+
+    def to_wire(self) -> dict:
+        return {"type": "withdraw", "request": self.request}
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "Withdraw":
+        return cls(_int(h, "request"))
 
 
 @dataclass(frozen=True)
@@ -443,8 +466,8 @@ def old_client_answer(e: OldClient) -> dict:
 
 
 def decode_plan_client(frame, max_bytes: int):
-    """A client's message to a server: :class:`PlanAsk`, :class:`Fetch`, :class:`Make` or
-    :class:`ManifestAsk`.
+    """A client's message to a server: :class:`PlanAsk`, :class:`Fetch`, :class:`Make`,
+    :class:`Withdraw` or :class:`ManifestAsk`.
 
     Raises:
         WireError: oversized, not msgpack within bounds, another protocol version, an unknown
@@ -467,7 +490,10 @@ def decode_plan_client(frame, max_bytes: int):
         return Make.from_wire(h)
     if kind == "manifest_ask":
         return ManifestAsk.from_wire(h)
-    raise WireError(f"unknown message type {kind!r:.40} (a server takes plan_ask, fetch, make and manifest_ask)")
+    if kind == "withdraw":
+        return Withdraw.from_wire(h)
+    raise WireError(f"unknown message type {kind!r:.40} (a server takes plan_ask, fetch, make, withdraw and "
+                    "manifest_ask)")
 
 
 def plan_server_message(h: dict):

@@ -511,6 +511,12 @@ class PlanScheduler:
         host says its readers in each answer to a make and to a ``plan_ask``."""
         return self.orders.queued(self.slots.expected)
 
+    def withdraw(self, of: Callable[[Hashable], bool], request: int) -> None:
+        """Drop the make ``request`` of the client ``of`` matches (``plan_messages.Withdraw``: its
+        samples were had elsewhere) while it waits: its video is decoded only for the makes and
+        fetches still waiting on it. A decode started goes on."""
+        self.orders.waiting = [o for o in self.orders.waiting if not (o.request == request and of(o.client))]
+
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches and makes (it left)."""
         self.pending = [f for f in self.pending if f.client != client]

@@ -39,7 +39,8 @@ from v2v_wire.codecs import COMPRESSIONS, available
 from v2v_wire.outputs import narrowest, wire_row
 from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MANIFEST_PART, BadPeers, Make, ManifestAsk, ManifestPart, Moved, OldClient, PlanAsk,
-                                     PlanInfo, Refused, Rows, WireError, decode_plan_client, old_client_answer)
+                                     PlanInfo, Refused, Rows, WireError, Withdraw, decode_plan_client,
+                                     old_client_answer)
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
@@ -203,7 +204,10 @@ class PlanServer:
         if isinstance(msg, PlanAsk):
             self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance,
                                        self.scheduler.queued(),
-                                       self.metrics.capacity(self.cfg.workers, time.monotonic())).to_wire())
+                                       self.metrics.capacity(self.cfg.workers, time.monotonic()), True).to_wire())
+            return
+        if isinstance(msg, Withdraw):  # its connection's make: another host's copy came first
+            self.scheduler.withdraw(lambda client: client[0] == ident, msg.request)
             return
         if isinstance(msg, ManifestAsk):
             self._send(ident, self._manifest_part(msg.offset).to_wire())
