@@ -833,7 +833,8 @@ def trim(s: "PlanScheduler", now: float) -> None:
         s.fetched.discard(sk)
     bound = max(s.lookahead, s.shuffle_buffer)
     unfetched = {(e, k.video) for (e, k) in s.store if (e, k) not in s.fetched}
-    s.unfolded = {ek for ek in s.unfolded if ek in s.runs or ek in unfetched}
+    s.unfolded = {ek for ek in s.unfolded if ek in s.runs or ek in unfetched and
+                  now - s.fetched_at.get(ek[0], now) < IDLE_S}  # an epoch no fetch named a while: a job that left
     over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
