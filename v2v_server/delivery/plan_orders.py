@@ -66,6 +66,11 @@ class Orders:
         """Drop ``client``'s makes (it left)."""
         self.waiting = [o for o in self.waiting if o.client != client]
 
+    def withdraw(self, of: Callable[[Hashable], bool], request: int) -> None:
+        """Drop the waiting make ``request`` of the client ``of`` matches (its reader had the
+        samples elsewhere)."""
+        self.waiting = [o for o in self.waiting if not (o.request == request and of(o.client))]
+
     def keys(self, o: Order) -> List[SampleKey]:
         """The keys make ``o`` names (none for a make of a video's windows)."""
         return [SampleKey.at(o.video, i, self.kpw) for i in o.ordinals or ()]

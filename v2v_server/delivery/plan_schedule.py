@@ -121,6 +121,11 @@ class Pending:
     stop: int
     decided: Optional[List[Optional[SampleKey]]] = field(default=None, repr=False, compare=False)
 
+    def unfolds(self, plan: EpochPlan) -> bool:
+        """It asks positions ``plan`` (its epoch's) has not decided yet: it waits on the plan to
+        unfold (:func:`unfolding`)."""
+        return not plan.complete and self.stop > plan.known
+
     def keys(self, plan: EpochPlan) -> List[Optional[SampleKey]]:
         """The keys of its positions ``plan`` (its epoch's) decided, from ``start`` on (None past the
         epoch's end); kept once every one is (what a plan says of a position never changes), so a
@@ -515,7 +520,7 @@ class PlanScheduler:
         """Drop the make ``request`` of the client ``of`` matches (``plan_messages.Withdraw``: its
         samples were had elsewhere) while it waits: its video is decoded only for the makes and
         fetches still waiting on it. A decode started goes on."""
-        self.orders.waiting = [o for o in self.orders.waiting if not (o.request == request and of(o.client))]
+        self.orders.withdraw(of, request)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches and makes (it left)."""
@@ -553,7 +558,7 @@ class PlanScheduler:
     def _rows(self, f: Pending) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
         rows = []
-        if not plan.complete and f.stop > plan.known:
+        if f.unfolds(plan):
             return None  # not decided yet
         for p, key in zip(range(f.start, f.stop), f.keys(plan)):
             if key is None:
@@ -595,9 +600,8 @@ class PlanScheduler:
             run = self.runs[ek] = Run(epoch, video, made=self.passed.pop(ek, set()))
         run.copies[tid], run.progress[tid] = worker, now
         self.task_run[tid] = ek
-        plan = self.plans.get(epoch)
-        if self.slots.samples.get(video) is None and plan is not None and not plan.complete and \
-                any(f.epoch == epoch and f.stop > plan.known for f in self.pending):
+        if self.slots.samples.get(video) is None and any(f.epoch == epoch and f.unfolds(self.plan(epoch))
+                                                         for f in self.pending):
             self.unfolded.add(ek)
         skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
         skip |= run.made  # made by the copy it hedges, and read already: not made again
@@ -760,7 +764,7 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
             if key is not None and (f.epoch, key) not in store and (f.epoch, key) not in failed:
                 ek = (f.epoch, key.video)
                 waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-        if not plan.complete and f.stop > plan.known:
+        if f.unfolds(plan):
             for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
                 waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
     reach = s.reach
@@ -832,9 +836,10 @@ def trim(s: "PlanScheduler", now: float) -> None:
         del s.store[sk]
         s.fetched.discard(sk)
     bound = max(s.lookahead, s.shuffle_buffer)
-    unfetched = {(e, k.video) for (e, k) in s.store if (e, k) not in s.fetched}
-    s.unfolded = {ek for ek in s.unfolded if ek in s.runs or ek in unfetched and
-                  now - s.fetched_at.get(ek[0], now) < IDLE_S}  # an epoch no fetch named a while: a job that left
+    if s.unfolded:
+        unfetched = {(e, k.video) for (e, k) in s.store if (e, k) not in s.fetched}
+        s.unfolded = {ek for ek in s.unfolded if ek in s.runs or ek in unfetched and
+                      now - s.fetched_at.get(ek[0], now) < IDLE_S}  # an epoch no fetch named a while: a job that left
     over = len(s.store) - s.keep_samples - bound - s.slots.largest
     if over <= 0:
         return
@@ -846,7 +851,7 @@ def trim(s: "PlanScheduler", now: float) -> None:
     for f in s.pending:
         plan = s.plan(f.epoch)
         named.update((f.epoch, key) for key in f.keys(plan) if key is not None)
-        if not plan.complete and f.stop > plan.known:
+        if f.unfolds(plan):
             unfolds.add(f.epoch)
     if unfolds:  # a fetch of positions not decided yet names the videos whose slots decide them (unfolding)
         made = made_by_video(s)
