@@ -380,7 +380,7 @@ class _World:
                 at = self.t0 + self.now
                 arbiter = router.arbiter(clip, at)
                 pick = router.route(0, clip, needs[clip][1], at, due=due, position=needs[clip][0],
-                                    held=self.held.get(clip))
+                                    held=self.held.get(clip), video_samples=self.lay.needs[clip][1])
                 self.ask(rank, clip, self.placement(router, clip, arbiter, pick, at))
             else:
                 self.ask(rank, clip, self.lay.home[clip])
@@ -435,7 +435,8 @@ class _World:
             head = range(self.read, min(self.lay.length, self.read + self.f.step))
             for c in dict.fromkeys(self.lay.pos_clip[p] for p in head if self.rank_of[p] == rank):
                 if c is not None and (rank, c) not in self.done_at:
-                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), needs[c][0])
+                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), needs[c][0],
+                               video_samples=self.lay.needs[c][1])
                     if h is not None:
                         self.ask(rank, c, self.index[h])
 

@@ -181,7 +181,8 @@ class Pass:
             self.router.ask(v.host, self.epoch, video, count, now, v.position)
         else:
             v.host = self.router.route(self.epoch, video, count, now, exclude=list(v.refused), due=self.due(v.position),
-                                       position=v.position, held=self.fleet.made.get(video))
+                                       position=v.position, held=self.fleet.made.get(video),
+                                       video_samples=self.video_samples(video))
             arbiter = self.router.arbiter(video, now)
             if v.host is not None and arbiter not in (None, v.host) and arbiter not in v.refused:
                 spill, v.host = v.host, arbiter  # asked of the arbiter, to place it there
@@ -202,6 +203,12 @@ class Pass:
         if self._windows[0] != len(w):  # learned elsewhere than :meth:`receive`: counted again
             self._windows = (len(w), sum(w.values()))
         return max(1, round(self.kpw * self._windows[1] / self._windows[0])) if w else self.kpw
+
+    def video_samples(self, video: str) -> int:
+        """Samples a host's decode of ``video`` makes, every window's, whichever of them this
+        reader asks (``Router.finish``): its windows where known, else :meth:`per_video`."""
+        windows = self.fleet.windows.get(video)
+        return windows * self.kpw if windows else self.per_video()
 
     def due(self, position: int) -> Optional[float]:
         """Seconds until the head reaches ``position`` at the fleet's rate (None: a position past
@@ -451,7 +458,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
-        h = read.router.copy(read.epoch, video, n, now, asked, v.position, v.refused)
+        h = read.router.copy(read.epoch, video, n, now, asked, v.position, v.refused, read.video_samples(video))
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
 

@@ -302,7 +302,7 @@ class Router:
     # ------------------------------------------------------------------ routing
     def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = (),
               due: Optional[float] = None, position: Optional[int] = None,
-              held: Optional[str] = None) -> Optional[str]:
+              held: Optional[str] = None, video_samples: Optional[int] = None) -> Optional[str]:
         """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
         ranking that is not suspect, not in ``exclude``, within its bounded load (its queue, every
         reader's (:meth:`backlog`), and these samples within its share, its weight over the
@@ -318,8 +318,13 @@ class Router:
         deadlines too. Readers that heard the same queues pick the same host. None when no host
         is left. A host that has not said its rate is past its bounds once this reader's queue
         there and these samples pass :data:`MEASURING_DECODES` of its videos per worker
-        (:meth:`measuring_samples`); where every host is past them, the one that would make the
-        video first of those within that, else of all.
+        (:meth:`measuring_samples`). Where every host is past them: the first of the ranking
+        that would make the video within ``1 + slack`` of the soonest any would (of those within
+        that measure, else of all), so readers that fell behind together, each seeing its own
+        queues, spread their late videos over the near-best hosts instead of each sending them
+        all to the one best host. ``video_samples``: what the host's decode of the video makes,
+        every window's samples (default ``samples``): a job's reader asks its slice of a video,
+        and the host's worker decodes all of it (:meth:`finish`).
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
         self._routed[0] += 1
@@ -334,7 +339,8 @@ class Router:
         weight = sum(weights[h] for h in ranking)
 
         def in_time(h: str, late_s: float = 0.0) -> bool:
-            return due is None or self.finish(h, samples, position, now) <= (1 + self.slack) * due + late_s
+            return due is None or \
+                self.finish(h, samples, position, now, video_samples) <= (1 + self.slack) * due + late_s
 
         def measuring(h: str) -> bool:  # not said its rate, and asked what measures it already
             return self.hosts[h].rate is None and self.hosts[h].load + samples > self.measuring_samples(h)
@@ -344,7 +350,7 @@ class Router:
                 return float("inf")
             load = (backlog[h] + samples) / (total * weights[h] / weight) - 1
             late = float("inf") if due is not None and due <= 0 else \
-                0.0 if due is None else self.finish(h, samples, position, now) / due - 1
+                0.0 if due is None else self.finish(h, samples, position, now, video_samples) / due - 1
             return max(load, late) / self.slack
 
         if held in ranking and due is not None and in_time(held, self.patience_s):
@@ -353,8 +359,10 @@ class Router:
             keep = dict(zip(ranking, spill_draw(video, ranking)))
             pick = next((h for h in ranking if keep[h] >= past(h)), None)
         if pick is None:
-            pick = min([h for h in ranking if not measuring(h)] or ranking,
-                       key=lambda h: self.finish(h, samples, position, now))
+            pool = [h for h in ranking if not measuring(h)] or ranking
+            ends = {h: self.finish(h, samples, position, now, video_samples) for h in pool}
+            best = min(ends.values())
+            pick = next(h for h in pool if ends[h] <= (1 + self.slack) * best)
         self.ask(pick, epoch, video, samples, now, position)
         return pick
 
@@ -407,21 +415,25 @@ class Router:
             return s.others
         return max(0.0, s.others - (now - s.said) * (s.rate or self.mean_rate() or 1.0))
 
-    def finish(self, host: str, samples: int, position: Optional[int] = None, now: Optional[float] = None) -> float:
+    def finish(self, host: str, samples: int, position: Optional[int] = None, now: Optional[float] = None,
+               video_samples: Optional[int] = None) -> float:
         """Seconds ``host`` would take to make ``samples`` more of one video at ``position`` and
         its queued samples it makes first, at the rate it said (a host that said none yet: the
         fleet's mean, else 1 sample/s): this reader's at earlier positions (all, for ``position``
         None), and the other readers' (:meth:`backlog`) in the same proportion (their positions
-        are not said; all of them while this reader queued nothing there); and no sooner than one
-        of its workers makes the ``samples`` (one worker decodes a video: a clip of many windows
-        on a slow host of many workers takes many times what the host's rate says)."""
+        are not said; all of them while this reader queued nothing there), then one of its
+        workers' decode of the whole video, ``video_samples`` (default ``samples``) at a worker's
+        share of the rate: one worker decodes a video, so a clip of many windows on a slow host
+        of many workers takes many times what the host's rate says, and a job's reader that
+        asks one sample of it waits on all of it. The host works its queue with every worker, so
+        what it makes first delays this video by that queue over the whole host's rate."""
         s = self.hosts[host]
         first = s.load if position is None else sum(n for ev, n in s.queued.items() if s.at.get(ev, 0) <= position)
         others = self._others(s, now)
         if others:
             others *= first / s.load if s.load else 1.0
         rate = s.rate or self.mean_rate() or 1.0
-        return max(first + others + samples, samples * s.workers) / rate
+        return (first + others + (video_samples or samples) * s.workers) / rate
 
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
@@ -514,13 +526,15 @@ class Router:
         self._load -= n
 
     def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
-             position: Optional[int] = None, refused: Collection[str] = ()) -> Optional[str]:
+             position: Optional[int] = None, refused: Collection[str] = (),
+             video_samples: Optional[int] = None) -> Optional[str]:
         """The host to ask a copy of ``video`` (``samples`` samples, first needed at
         ``position``) that a reader waits on, asked of ``asked``: the first of its ranking with
         nothing queued by any reader (:meth:`backlog`), not suspect, not one that ``refused`` a
         make of it, if it would make it sooner (:meth:`finish`) than the hosts asked would (a
-        slow host, or one with earlier work queued). The host's queue takes the video; None: no
-        copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
+        slow host, or one with earlier work queued; ``video_samples``: as :meth:`finish`). The
+        host's queue takes the video; None: no copy (a host silent for ``hedge_s`` is
+        :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
         free = [h for h in self.hosts if h not in asked and h not in refused and self.backlog(h, now) <= 0
                 and not self.suspect(h, now)]
@@ -528,7 +542,7 @@ class Router:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
         clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
-        if self.finish(pick, samples, position, now) >= clears:
+        if self.finish(pick, samples, position, now, video_samples) >= clears:
             return None
         self.ask(pick, epoch, video, samples, now, position)
         return pick
