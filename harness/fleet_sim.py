@@ -341,8 +341,14 @@ class _World:
         if rank not in ranks:
             self.queued[k] += self.needs[rank][clip][1]
             ranks.add(rank)
-        heapq.heappush(self.queues[k], (self.needs[rank][clip][0], clip))
+        heapq.heappush(self.queues[k], (self.start_by(rank, clip), clip))
         self.start_work(k)
+
+    def start_by(self, rank: int, clip: str) -> int:
+        """The position ``rank`` asks ``clip`` at (``Router.start_by``; static shards: the first
+        needing it), the order its host works it in."""
+        first = self.needs[rank][clip][0]
+        return self.routers[rank].start_by(first, self.lay.needs[clip][1]) if self.routers else first
 
     def _unqueue(self, k: int, clip: str) -> Set[int]:
         """The ranks that waited on ``clip`` at host ``k``, which no longer queues their samples."""
@@ -379,7 +385,7 @@ class _World:
                 due = (needs[clip][0] - self.read) / router.capacity()  # as the reader's Pass.due
                 at = self.t0 + self.now
                 arbiter = router.arbiter(clip, at)
-                pick = router.route(0, clip, needs[clip][1], at, due=due, position=needs[clip][0],
+                pick = router.route(0, clip, needs[clip][1], at, due=due, position=self.start_by(rank, clip),
                                     held=self.held.get(clip), video_samples=self.lay.needs[clip][1])
                 self.ask(rank, clip, self.placement(router, clip, arbiter, pick, at))
             else:
@@ -435,7 +441,7 @@ class _World:
             head = range(self.read, min(self.lay.length, self.read + self.f.step))
             for c in dict.fromkeys(self.lay.pos_clip[p] for p in head if self.rank_of[p] == rank):
                 if c is not None and (rank, c) not in self.done_at:
-                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), needs[c][0],
+                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), self.start_by(rank, c),
                                video_samples=self.lay.needs[c][1])
                     if h is not None:
                         self.ask(rank, c, self.index[h])
@@ -855,7 +861,8 @@ class _ScaledWorld(_World):
         for _, clip in orphans:
             if (0, clip) not in self.done_at:
                 due = max(0, needs[clip][0] - self.read) / self.router.capacity()
-                h = self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due, position=needs[clip][0])
+                h = self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
+                                      position=self.start_by(0, clip), video_samples=self.lay.needs[clip][1])
                 if h is not None:
                     self.ask(0, clip, self.index[h])
         self.settle()

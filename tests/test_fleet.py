@@ -262,9 +262,10 @@ def test_a_videos_arbiter_has_it_made_where_the_first_reader_placed_it():
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
     """harness.fleet_sim with 8 ranks, each with its own router: routed by the hosts' queues and
     placed by each clip's arbiter, a clip is made about once and the fleet near its capacity over
-    the whole epoch (each rank bound by what it queued alone: 1.11 decodes a clip, 0.75)."""
-    r = simulate(Fleet(hosts=16, videos=4000, ranks=8), "routed")
-    assert r.decodes < 1.03 and r.share > 0.9
+    the whole epoch, seeds 0-3 (each rank bound by what it queued alone, seed 0: 1.11 decodes a
+    clip, 0.75)."""
+    runs = [simulate(Fleet(hosts=16, videos=4000, ranks=8, seed=s), "routed") for s in range(4)]
+    assert max(r.decodes for r in runs) < 1.04 and sum(r.share for r in runs) / len(runs) > 0.88
 
 
 def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked_of_the_next():
@@ -537,6 +538,21 @@ def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_
     assert [(h, m.route, m.ordinals) for h, m in sent[1:]] == [(other, None, make.ordinals)]
     read.ask(v, (3,), 0.2)
     assert [(h, m.route) for h, m in sent[2:]] == [(other, None)]
+
+
+def test_a_fleet_pass_asks_a_long_video_at_the_latest_position_its_decode_can_start():
+    """A host works its makes by ``Make.position``. A video of 20 windows needed at position 100
+    takes one of the fleet's 2 workers what the fleet reads in 40 positions, so it is asked at
+    60 (``Router.start_by``), ahead of a one-window video needed at 90 (asked at 88): started by
+    first position, the head would wait on the long decode after the short one's."""
+    long_video, short_video = VIDEOS[:2]
+    read, sent = _fleet_pass({long_video: 20, short_video: 1}, HOSTS[:2], stop=1)
+    read.fleet.windows.update({long_video: 20, short_video: 1})
+    read.ask(long_video, (0,), 0.0, position=100)
+    read.ask(short_video, (0,), 0.0, position=90)
+    at = {m.video: m.position for _, m in sent}
+    assert read.kpw == 1 and at == {long_video: 60, short_video: 88}
+    assert read.router.start_by(10, 20) == 0  # never before the epoch's start
 
 
 def test_a_backup_request_or_hedge_never_goes_to_a_host_that_refused_the_video():

@@ -85,10 +85,10 @@ def test_the_deploy_files_hpa_follows_a_job_and_the_cpu_would_not():
 @pytest.mark.timeout(120)
 def test_a_reader_that_asks_ahead_for_the_hosts_it_read_at_the_start_makes_a_grown_fleet_wait():
     """docs/scaling.md: a reader that sizes its window once an epoch (``fleet_pass.Pass`` follows
-    the fleet instead), in a job started on 2 hosts, waits on long clips whatever the fleet,
-    which idles enough that the HPA stops."""
+    the fleet instead), in a job started on 2 hosts, waits on long clips on a tenth of its steps
+    and more whatever the fleet, which idles enough that the HPA holds it near what is needed."""
     g = autoscale(FLEET, Job(window_follows=False)).figures()
-    assert g["waited"] > 0.1 and g["held"] < 1.1
+    assert g["waited"] > 0.1 and g["held"] < 1.2
 
 
 def scrape(port: int) -> dict:

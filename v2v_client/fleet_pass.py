@@ -64,7 +64,7 @@ def _zeros(stream: Optional[dict], outputs) -> Optional[Dict[str, np.ndarray]]:
 @dataclass
 class Video:
     """What this reader asked of one video in one pass: the host it asks, the first position that
-    needs it (the hosts decode makes in that order), the samples asked (ordinal -> request id),
+    needs it (its makes are asked at :meth:`Pass.start_by` of it), the samples asked (ordinal -> request id),
     and the requests in flight ((host, request id) -> (host, ordinals, asked at): each host
     numbers its requests itself), the hosts that refused a make of it (it is asked of others),
     and whether its arbiter placed it at a host this reader does not read (``here``: the
@@ -149,7 +149,7 @@ class Pass:
         route = spill if spill is not None else "" if not (here or v.here) and host == self.router.arbiter(video, now) \
             else None
         link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
-                        min(v.position, _LAST), route).to_wire())
+                        self.start_by(video), route).to_wire())
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -178,10 +178,10 @@ class Pass:
             raise PlanServerError(f"{ep}: {why} (every host of the fleet refused a make of it)")
         spill = None
         if v.host in self.router.hosts and not self.router.suspect(v.host, now) and v.host not in v.refused:
-            self.router.ask(v.host, self.epoch, video, count, now, v.position)
+            self.router.ask(v.host, self.epoch, video, count, now, self.start_by(video))
         else:
             v.host = self.router.route(self.epoch, video, count, now, exclude=list(v.refused), due=self.due(v.position),
-                                       position=v.position, held=self.fleet.made.get(video),
+                                       position=self.start_by(video), held=self.fleet.made.get(video),
                                        video_samples=self.video_samples(video))
             arbiter = self.router.arbiter(video, now)
             if v.host is not None and arbiter not in (None, v.host) and arbiter not in v.refused:
@@ -209,6 +209,13 @@ class Pass:
         reader asks (``Router.finish``): its windows where known, else :meth:`per_video`."""
         windows = self.fleet.windows.get(video)
         return windows * self.kpw if windows else self.per_video()
+
+    def start_by(self, video: str) -> int:
+        """The position ``video`` is asked at (``Make.position``: its hosts work their makes in
+        that order): ``Router.start_by`` of the first position needing it, so a long video is
+        started a decode's time before the head needs it (unknown: past every known one)."""
+        v = self.videos[video]
+        return _LAST if v.position >= _LAST else self.router.start_by(v.position, self.video_samples(video))
 
     def due(self, position: int) -> Optional[float]:
         """Seconds until the head reaches ``position`` at the fleet's rate (None: a position past
@@ -458,7 +465,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
-        h = read.router.copy(read.epoch, video, n, now, asked, v.position, v.refused, read.video_samples(video))
+        h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused, read.video_samples(video))
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
 

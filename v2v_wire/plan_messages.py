@@ -226,8 +226,10 @@ class Make:
     decodes the video to learn them, and keeps its samples for the makes that follow). A reader of
     a fleet asks each video of the host it routes it to (``v2v_wire.fleet``); the answer is
     :class:`Rows` in the order asked (no row for ``None``), with ``windows``. ``position``: the
-    first position of the epoch that needs the video (a host decodes the videos made for in that
-    order, whoever asked: a copy asked of a second host for a step that waits goes first there).
+    position of the epoch by which the video's decode should start, the first that needs it less
+    what the fleet reads while one worker decodes it (``v2v_wire.fleet.Router.start_by``): a host
+    decodes the videos made for in that order, whoever asked (a copy asked of a second host for a
+    step that waits goes first there).
     ``route``: a fleet's reader asks each video of its arbiter (``v2v_wire.fleet.Router.arbiter``),
     which answers :class:`Moved` where the video is made elsewhere: ``""``, make it here unless a
     reader had it placed elsewhere; a host's name, place it there unless this host holds the
