@@ -25,10 +25,14 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   and after what it holds for earlier positions, within the seconds until the reader's head
   reaches it (``due``); a host past either by a fraction ``x`` of ``slack`` keeps the videos
   whose draw (:func:`spill_draw`) is at least ``x``, none past ``1 + slack``; else the video goes
-  to the host that would make it first. A host that falls behind sheds new videos to the next
-  hosts of their rankings until it catches up, and a slow host is given the videos needed
-  later, not those the reader is about to wait on. A video takes a host at least what one of
-  its workers takes to make it (one worker decodes a video).
+  to the first host of its ranking that would make it within ``1 + slack`` of the soonest (readers
+  late together spread over the near-best hosts). A host that falls behind sheds new videos to
+  the next hosts of their rankings until it catches up, and a slow host is given the videos
+  needed later, not those the reader is about to wait on. A video takes a host its queue, then
+  what one of its workers takes to decode the whole video (one worker decodes a video, whatever
+  slice of it a reader asks), and is asked at the latest position its decode can start
+  (:meth:`Router.start_by`), the order the host works its makes in: a long video starts before
+  the short ones needed a little earlier.
 * **A host is measured before it is loaded.** A host that has not said its rate yet is asked
   for :data:`MEASURING_DECODES` videos per worker by each reader (of its slice of each video), and the reader's
   window counts it at that (:meth:`Router.ahead_decodes`); its share grows to the window's
@@ -308,7 +312,7 @@ class Router:
         reader's (:meth:`backlog`), and these samples within its share, its weight over the
         fleet's, of everything queued on the fleet) and, where the reader needs the video within
         ``due`` seconds, that would make it within that (:meth:`finish`; a host makes the videos
-        asked of it in the order of ``position``, the first position needing each): a host past
+        asked of it in the order of ``position``, :meth:`start_by` of the first needing each): a host past
         either by a fraction ``x`` of ``slack`` keeps the video when its draw
         (:func:`spill_draw`) is at least ``x``; else the one of those that would make it first. ``held``,
         the host that made the video last (its frame cache holds it), is kept before them while
