@@ -465,7 +465,8 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
-        h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused, read.video_samples(video))
+        h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused,
+                             read.video_samples(video))
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
 

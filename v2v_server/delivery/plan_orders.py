@@ -3,9 +3,10 @@ computes the plan itself and asks each video's samples, by ordinal, of the host 
 video to (``v2v_wire.plan_messages.Make``), or the video's windows only, which its plan unfolds
 with. The host's scheduler (``plan_schedule.PlanScheduler``) decodes the videos makes wait on
 after those its fetches wait on, in the order of (epoch, the make's position: the latest by which
-its decode should start, ``v2v_wire.fleet.Router.start_by``), then of arrival; it keeps the samples of the videos makes wait on, and for :data:`TOLD_S` after a
-make of a video was answered the video's other samples (a decode makes all of them, and the reader asks each as its
-plan reaches its position: the plan's shuffle buffer spreads a video's samples over about twice
+its decode should start, ``v2v_wire.fleet.Router.start_by``), then of arrival; it keeps the
+samples of the videos makes wait on, and for :data:`TOLD_S` after a make of a video was answered
+the video's other samples (a decode makes all of them, and the reader asks each as its plan
+reaches its position: the plan's shuffle buffer spreads a video's samples over about twice
 its size in positions, past what a host's store keeps unnamed). ``tests/test_plan_schedule.py``."""
 from __future__ import annotations
 
