@@ -137,19 +137,21 @@ class Pass:
                 return  # past the epoch's end: no step after it holds a sample
 
     def send(self, video: str, ordinals: Optional[Tuple[int, ...]], host: str, now: float,
-             spill: Optional[str] = None, here: bool = False) -> None:
+             spill: Optional[str] = None, here: bool = False, move: bool = False) -> None:
         """Ask ``host`` for ``ordinals`` of ``video`` (None: its windows): of the video's arbiter
         (``Router.arbiter``), to be made there unless a reader placed it elsewhere, or (``spill``)
-        placed at that host unless the arbiter holds it (``Make.route``); of another host, or
-        (``here``) made there: asked of one that said where it is placed, or a copy (a hedge, a
-        backup request), which an arbiter would move back to the host it copies."""
+        placed at that host unless the arbiter holds it (``Make.route``), or (``move``, with
+        ``spill``) moved off ``host`` to ``spill`` unless it started it (``Make.move``,
+        :meth:`rebalance`); of another host, or (``here``) made there: asked of one that said
+        where it is placed, or a copy (a hedge, a backup request), which an arbiter would move
+        back to the host it copies."""
         link = self.fleet.links[host]
         req = next(link.ids)
         v = self.videos.setdefault(video, Video())
         route = spill if spill is not None else "" if not (here or v.here) and host == self.router.arbiter(video, now) \
             else None
         link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
-                        self.start_by(video), route).to_wire())
+                        self.start_by(video), route, move).to_wire())
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -260,6 +262,34 @@ class Pass:
                 budget -= 1
             position += self.per_video()
 
+    def rebalance(self, host: str, now: float) -> None:
+        """Host ``host`` said its first rate: the videos this reader asked of it that it would
+        make late at that rate (``Router.overdue``; a host is loaded before its first decodes
+        measure it) are asked of it again as a move to the host ``Router.move_off`` picks
+        (``Make.move``): unless it started the video, it answers every reader's make of it
+        waiting there with ``Moved``, so the video is still made once. Only of a host that takes
+        a ``Withdraw`` (one that does not would not move it either)."""
+        s = self.router.hosts.get(host)
+        if s is None or host not in self.fleet.withdraws or host not in self.fleet.links:
+            return
+        mine = [video for e, video in s.queued if e == self.epoch and video in self.videos]
+        due = {video: self.due(self.videos[video].position) for video in mine}
+        whole = {video: self.video_samples(video) for video in mine}
+        for video in self.router.overdue(host, self.epoch, now, due, whole):
+            v = self.videos[video]
+            flights = [(hr, ords) for hr, (h, ords, _) in v.flight.items() if h == host]
+            if v.host != host or not flights:
+                continue
+            count = sum(len(ords) if ords else self.per_video() for _, ords in flights)
+            pick = self.router.move_off(host, self.epoch, video, count, now, due[video], self.start_by(video),
+                                        whole[video], exclude=list(v.refused))
+            if pick is None:
+                continue
+            for hr, ords in flights:  # the host answers the make it replaces with Moved too
+                del v.flight[hr]
+                self.flight.pop(hr, None)
+                self.send(video, ords, host, now, spill=pick, move=True)
+
     # ------------------------------------------------------------------ the head
     def head_rows(self, now: Optional[float] = None) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
         """``(step, rows, arrays)`` of the head once each of its positions is known (made,
@@ -328,11 +358,18 @@ class Pass:
 
     def receive(self, ep: str, msg, frames, now: float) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
-        ordinal); its video's windows unfold the plan), or a refusal (:func:`refused`).
+        ordinal); its video's windows unfold the plan), or a refusal (:func:`refused`); the
+        first rate it says moves what it would make late (:meth:`rebalance`).
 
         Raises:
             BrokenPeer: rows whose arrays cannot be read.
             PlanServerError: every host refused a make of the video."""
+        measured = ep in self.router.hosts and bool(self.router.hosts[ep].rate)
+        self._take(ep, msg, frames, now)
+        if not measured and ep in self.router.hosts and self.router.hosts[ep].rate:
+            self.rebalance(ep, now)  # its first rate
+
+    def _take(self, ep: str, msg, frames, now: float) -> None:
         if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its rate and queue
             self.router.heard(ep, now, msg.rate, msg.queued)
             self.fleet.join(ep, msg, now)

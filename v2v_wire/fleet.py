@@ -37,7 +37,10 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   for :data:`MEASURING_DECODES` videos per worker by each reader (of its slice of each video), and the reader's
   window counts it at that (:meth:`Router.ahead_decodes`); its share grows to the window's
   :data:`AHEAD_DECODES` once its first decodes measure it. A slow host loaded blind holds
-  the epoch's first clips, which the head then waits on one by one.
+  the epoch's first clips, which the head then waits on one by one: so when a reader hears a
+  host's first rate, the videos it asked of it that it would make late at that rate
+  (:meth:`Router.overdue`) move to the next pick (:meth:`Router.move_off`), every reader's make
+  of each waiting there with it (``Make.move``: unless the host started its decode).
 * **The hosts' view, not the reader's.** A job has several readers (ranks times DataLoader
   workers), and several jobs may read one fleet; each reader routes on its own, with no
   coordinator. So each host says in every answer, and in its answer to a ping (a ``plan_ask``,
@@ -398,6 +401,49 @@ class Router:
         hosts' capacity at sigma 0.2, 32 readers 0.79 -> 0.85 (docs/scaling.md)."""
         workers = sum(s.workers for s in self.hosts.values())
         return max(0, position - video_samples * workers)
+
+    def overdue(self, host: str, epoch: int, now: float, due: Mapping[str, Optional[float]],
+                video_samples: Mapping[str, int]) -> List[str]:
+        """The videos of ``epoch`` this reader queued on ``host`` that it would make, at the rate it
+        said (:meth:`finish`, ``video_samples``: each one's whole decode), later than ``1 +
+        slack`` times their ``due`` (seconds until the reader's head needs each; None: not
+        judged), in the order the host works them, its first ``workers`` left (it has started
+        them). A host is loaded before its first decodes measure it (:data:`MEASURING_DECODES`);
+        one that turns out slow holds the epoch's first videos, which the head would wait on one
+        by one: a reader that hears its first rate moves these off it (:meth:`move_off`)."""
+        s = self.hosts.get(host)
+        if s is None or not s.rate:
+            return []
+        mine = sorted((ev for ev in s.queued if ev[0] == epoch), key=lambda ev: s.at.get(ev, 0))
+        out = []
+        for _, video in mine[s.workers:]:
+            d = due.get(video)
+            if d is not None and self.finish(host, 0, s.at.get((epoch, video)), now, video_samples[video]) > \
+                    (1 + self.slack) * d:
+                out.append(video)
+        return out
+
+    def move_off(self, host: str, epoch: int, video: str, samples: int, now: float, due: Optional[float],
+                 position: Optional[int], video_samples: Optional[int] = None, exclude: Sequence[str] = ()) -> \
+            Optional[str]:
+        """Route ``video`` (``samples`` of it for this reader) again, ``host`` excluded (one of
+        :meth:`overdue`'s): its queue leaves ``host`` and goes to the pick (:meth:`route`);
+        None, and it stays, where no other host would take it."""
+        s = self.hosts.get(host)
+        ev = (epoch, video)
+        if s is None or ev not in s.queued:
+            return None
+        at = s.at.get(ev)
+        self._unqueue(s, ev)
+        pick = self.route(epoch, video, samples, now, exclude=[host, *exclude], due=due, position=position,
+                          video_samples=video_samples)
+        if pick is None:
+            self.ask(host, epoch, video, samples, now, at)
+            return None
+        asked = self.asked.get(ev, [])
+        if host in asked:
+            asked.remove(host)
+        return pick
 
     def arbiter(self, video: str, now: float) -> Optional[str]:
         """The host that says where ``video`` is made: the first of its ranking that is not

@@ -233,7 +233,11 @@ class Make:
     ``route``: a fleet's reader asks each video of its arbiter (``v2v_wire.fleet.Router.arbiter``),
     which answers :class:`Moved` where the video is made elsewhere: ``""``, make it here unless a
     reader had it placed elsewhere; a host's name, place it there unless this host holds the
-    video or placed it already; None (an older reader's; a copy, or the host told): make it here."""
+    video or placed it already; None (an older reader's; a copy, or the host told): make it here.
+    ``move``: the reader moves the video off this host, which said a rate at which it would make
+    it late (``v2v_wire.fleet.Router.overdue``): unless its decode started here, it is placed at
+    ``route`` with every reader's make of it waiting here (each answered :class:`Moved`). An
+    older server ignores it (and makes the video)."""
 
     request: int
     epoch: int
@@ -244,12 +248,13 @@ class Make:
     compression: str = "none"
     position: int = 0
     route: Optional[str] = None
+    move: bool = False
 
     def to_wire(self) -> dict:
         return {"type": "make", "request": self.request, "epoch": self.epoch, "video": self.video,
                 "ordinals": None if self.ordinals is None else list(self.ordinals), "outputs": list(self.outputs),
                 "plan": self.plan.to_dict(), "compression": self.compression, "position": self.position,
-                "route": self.route}
+                "route": self.route, "move": self.move}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Make":
@@ -260,14 +265,16 @@ class Make:
                                      not all(isinstance(o, int) and not isinstance(o, bool) and 0 <= o < _MAX_INT
                                              for o in ordinals)):
             raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_MAKE_SAMPLES} ints >= 0")
-        route = h.get("route")
+        route, move = h.get("route"), h.get("move", False)
         if route is not None and (not isinstance(route, str) or len(route) > MAX_HOST_NAME):
             raise WireError(f"make: field 'route' must be nil or a host name of at most {MAX_HOST_NAME} characters, "
                             f"got {route!r:.80}")
+        if not isinstance(move, bool):
+            raise WireError(f"make: field 'move' must be a bool, got {move!r:.80}")
         outputs, plan, compression = _asked(h)
         return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), video,
                    None if ordinals is None else tuple(ordinals), outputs, plan, compression, _int(h, "position"),
-                   route)
+                   route, move)
 
 
 @dataclass(frozen=True)

@@ -105,23 +105,34 @@ class Orders:
                 out[(o.epoch, o.video)] = None
         return list(out)
 
-    def place(self, epoch: int, video: str, route: Optional[str], now: float) -> Optional[str]:
+    def place(self, epoch: int, video: str, route: Optional[str], now: float, move: bool = False,
+              started: bool = False) -> Optional[str]:
         """Where a make of ``video`` in ``epoch`` asked at ``now`` with ``route``
         (``Make.route``) is made: None here, else the host a reader placed it at first (within
         :data:`TOLD_S`: a reader asks a video's samples as its plan reaches them). A route naming
         a host places the video there unless this host holds it (a make waits on it, or one was
         answered within :data:`TOLD_S`): the readers of a job, whose views of the hosts' queues
-        differ, have each video made once, where the first of them to ask it chose."""
+        differ, have each video made once, where the first of them to ask it chose. A ``move``
+        (``Make.move``: a reader measured this host slow) places it at the route's host even so,
+        unless its decode ``started`` here or a make of it was answered: its waiting makes go
+        with it (:meth:`take`)."""
         if route is None:
             return None
         ev = (epoch, video)
         placed = self.placed.get(ev)
         if placed is not None and now - placed[1] < TOLD_S:
             return placed[0]
-        if route == "" or ev in self.told or any((o.epoch, o.video) == ev for o in self.waiting):
+        if route == "" or ev in self.told or started or \
+                not move and any((o.epoch, o.video) == ev for o in self.waiting):
             return None
         self.placed[ev] = (route, now)
         return route
+
+    def take(self, epoch: int, video: str) -> List[Order]:
+        """The makes waiting on ``video`` in ``epoch``, taken out (placed elsewhere: :meth:`place`)."""
+        out = [o for o in self.waiting if (o.epoch, o.video) == (epoch, video)]
+        self.waiting = [o for o in self.waiting if (o.epoch, o.video) != (epoch, video)]
+        return out
 
     def queued(self, expected: Callable[[str], int]) -> int:
         """Samples the makes waiting ask, every client's: a make's ordinals, or for a make of a

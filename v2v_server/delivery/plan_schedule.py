@@ -505,6 +505,16 @@ class PlanScheduler:
             self.store, self.fetched = OrderedDict(), set()
         self.fetched_at[epoch] = now
 
+    def place(self, epoch: int, video: str, route: Optional[str], now: float,
+              move: bool = False) -> Tuple[Optional[str], List[Order]]:
+        """Where a make of ``video`` in ``epoch`` with ``route`` and ``move`` (``Make``) is made,
+        None here (``Orders.place``), and the makes waiting here on it that a move placed
+        elsewhere with it, each to be answered ``Moved`` (``Orders.take``). A video is started
+        here once a worker decodes it or its samples are stored: it stays."""
+        started = move and ((epoch, video) in self.runs or any(e == epoch and k.video == video for e, k in self.store))
+        to = self.orders.place(epoch, video, route, now, move, started)
+        return to, self.orders.take(epoch, video) if to is not None and move else []
+
     @property
     def reach(self) -> int:
         """Positions past a moving head its reader's samples are made ahead for: ``lookahead``

@@ -229,7 +229,9 @@ class PlanServer:
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         if isinstance(msg, Make):
-            to = self.scheduler.orders.place(msg.epoch, msg.video, msg.route, now)
+            to, moved = self.scheduler.place(msg.epoch, msg.video, msg.route, now, msg.move)
+            for o in moved:  # a reader moved the video off a slow host: every reader's make goes with it
+                self._send(o.client[0], Moved(o.request, to).to_wire())
             if to is not None:  # another reader placed it there first: made once
                 self._send(ident, Moved(msg.request, to).to_wire())
                 return
