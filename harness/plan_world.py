@@ -152,6 +152,7 @@ class Outcome:
     hedged: int = 0  # makes a reader's router hedged to another host
     copies: int = 0  # makes of a video's samples asked of a second host (hedges, copies, a host gone)
     withdrawn: int = 0  # makes a reader withdrew, its samples had from another host first
+    moves: int = 0  # makes a reader asked as a move off a host it measured slow (Make.move)
     answered: int = 0  # rows holding a sample the servers answered fetches with, of the epochs read
     read: int = 0  # rows holding a sample the readers took (items' parts and probes), of the epochs read
     abandoned: int = 0  # rows holding a sample answered to a pass that had ended, of the epochs read
@@ -437,7 +438,7 @@ class World:
 #: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
           "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_stalls", "fleet_restarts",
-          "fleet_resumes", "resized", "hedged", "copies", "withdrawn", "cut_off", "counted", "counted_readers",
+          "fleet_resumes", "resized", "hedged", "copies", "withdrawn", "moves", "cut_off", "counted", "counted_readers",
           "counted_batch", "counted_long", "counted_cut")
 
 

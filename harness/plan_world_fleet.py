@@ -230,7 +230,10 @@ class Net:
                 self.out.problems.append(f"{host.name}: a {type(msg).__name__} under {problem}")
                 self.post(reader, (host.name, Refused(msg.request, str(problem), "plan").to_wire(), []))
                 continue
-            to = s.orders.place(msg.epoch, msg.video, msg.route, now)
+            self.out.moves += msg.move
+            to, moved = s.place(msg.epoch, msg.video, msg.route, now, msg.move)
+            for o in moved:
+                self.post(o.client[0], (host.name, Moved(o.request, to).to_wire(), []))
             if to is not None:
                 self.post(reader, (host.name, Moved(msg.request, to).to_wire(), []))
                 continue

@@ -192,6 +192,10 @@ def test_the_queue_a_host_says_and_a_makes_route_are_checked_at_the_edge_and_old
     for bad in (3, "x" * 513):
         with pytest.raises(WireError, match="'route'"):
             Make.from_wire({**make.to_wire(), "route": bad})
+    for bad in (1, "yes", None):
+        with pytest.raises(WireError, match="'move'"):
+            Make.from_wire({**make.to_wire(), "move": bad})
+    assert Make.from_wire(Make(3, 0, "a.mp4", (0,), ("voxels",), plan, route="tcp://c:1", move=True).to_wire()).move
     for bad in ("", None, 3):
         with pytest.raises(WireError, match="'host'"):
             Moved.from_wire({**Moved(3, "h").to_wire(), "host": bad})
@@ -202,10 +206,11 @@ def test_the_queue_a_host_says_and_a_makes_route_are_checked_at_the_edge_and_old
             PlanInfo.from_wire({**info.to_wire(), "stream": {"feed": {"workers": bad}}})
     with pytest.raises(WireError, match="'stream.feed.workers'"):
         PlanInfo.from_wire({**info.to_wire(), "stream": {"feed": "many"}})
-    old = [{k: v for k, v in m.to_wire().items() if k not in ("queued", "route", "rate")} for m in (rows, info, make)]
+    old = [{k: v for k, v in m.to_wire().items() if k not in ("queued", "route", "rate", "move")}
+           for m in (rows, info, make)]
     assert Rows.from_wire(old[0]).queued is None and PlanInfo.from_wire(old[1]).queued is None
     assert PlanInfo.from_wire(old[1]).rate is None
-    assert Make.from_wire(old[2]).route is None  # an older reader's make: made where asked
+    assert Make.from_wire(old[2]).route is None and not Make.from_wire(old[2]).move  # an older reader's
 
 
 def test_a_full_owner_sheds_new_videos_to_the_next_host_of_their_ranking():
@@ -257,6 +262,76 @@ def test_a_videos_arbiter_has_it_made_where_the_first_reader_placed_it():
     o.add(Order("r", 1, 0, "b.mp4", (0,), 0), {"b.mp4": 2})
     assert o.place(0, "b.mp4", "tcp://b:1", 3.0) is None  # it holds b.mp4 already: made here
     assert o.place(1, "a.mp4", "", 3.0) is None  # another epoch: its own placement
+
+
+def test_a_host_measured_slow_lists_the_videos_it_would_make_late_and_each_moves_to_the_next_pick():
+    """``Router.overdue``: of the videos queued on a host, those it would make past ``1 + slack``
+    of their due at the rate it said, in the order it works them, its first per worker left (it
+    started them); none on a host as fast as it was taken for. ``Router.move_off`` routes one
+    again without that host and its queue leaves it."""
+    r = Router(HOSTS[:2], now=0.0)
+    slow, fast = HOSTS[:2]
+    for i, v in enumerate(VIDEOS[:4]):
+        r.ask(slow, 0, v, 2, 0.0, position=10 * i)
+    due = {v: 10 * i / 20.0 for i, v in enumerate(VIDEOS[:4])}  # the head reads 20 positions/s
+    whole = dict.fromkeys(VIDEOS[:4], 2)
+    r.heard(fast, 1.0, rate=20.0)
+    r.heard(slow, 1.0, rate=20.0)
+    assert r.overdue(slow, 0, 1.0, due, whole) == []
+    r.heard(slow, 1.0, rate=1.0)
+    assert r.overdue(slow, 0, 1.0, due, whole) == VIDEOS[1:4]
+    assert r.overdue(slow, 0, 1.0, {**due, VIDEOS[2]: None}, whole) == [VIDEOS[1], VIDEOS[3]]
+    assert r.move_off(slow, 0, VIDEOS[1], 2, 1.0, due[VIDEOS[1]], 10, 2) == fast
+    assert (0, VIDEOS[1]) not in r.hosts[slow].queued and r.hosts[fast].queued[(0, VIDEOS[1])] == 2
+    assert r.asked[(0, VIDEOS[1])] == [fast]
+
+
+def test_a_video_moved_off_a_slow_host_goes_with_every_readers_make_unless_started():
+    """``Make.move``: a reader that measured a host slow moves a video off it, to the host named
+    by ``route``. The video's makes waiting there, every reader's, go with it (each answered
+    ``Moved``), and later makes of it there are told where it went; a video whose decode
+    started there stays, one placed elsewhere already is told where, and without ``move`` a
+    held video is made where it is."""
+    from v2v_server.delivery.plan_schedule import PlanScheduler
+    from v2v_wire.ids import SampleKey
+    from v2v_wire.plan import Manifest
+
+    s = PlanScheduler(Manifest.of({"a.mp4": 2, "b.mp4": 2, "c.mp4": 2}), 0, 1, ("voxels",), lookahead=0)
+    for reader in ("r1", "r2"):  # a.mp4 waits here for two readers
+        s.make((reader,), 1, 0, "a.mp4", (0,), 0.0)
+    assert s.place(0, "a.mp4", "tcp://fast:1", 1.0) == (None, [])  # held here: made here
+    to, moved = s.place(0, "a.mp4", "tcp://fast:1", 2.0, move=True)
+    assert to == "tcp://fast:1" and sorted(o.client for o in moved) == [("r1",), ("r2",)]
+    assert s.orders.waiting == [] and s.place(0, "a.mp4", "", 3.0) == ("tcp://fast:1", [])
+    assert s.place(0, "a.mp4", "tcp://other:1", 3.0, move=True) == ("tcp://fast:1", [])  # placed already
+    s.make(("r1",), 2, 0, "c.mp4", (0,), 0.0)
+    t = s.task_for("w", 4.0)
+    s.sample("w", t.task, SampleKey("c.mp4", 0), 4.5, lambda: "s0")
+    assert s.place(0, "c.mp4", "tcp://fast:1", 5.0, move=True) == (None, [])  # started: stays
+    assert [o.video for o in s.orders.waiting] == ["c.mp4"]
+
+
+def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it():
+    """A host is asked videos before its first decodes measure it. Once it says a rate at which
+    a video asked of it would be made later than its due (``Router.overdue``), the pass asks it
+    again as a move to the host its rules pick (``Make.move``, ``route``), and follows the
+    ``Moved`` answer there; the host's first make (it started it) stays."""
+    from v2v_wire.plan_messages import Moved, PlanInfo
+
+    slow, fast = HOSTS[:2]
+    read, sent = _fleet_pass({"clips/a.mp4": 1, "clips/b.mp4": 1}, [slow], others=[fast], stop=2)
+    read.ask_window(0.0)
+    first, second = (m.video for _, m in sent)  # positions 0 and 1, both asked of the one host
+    assert {h for h, _ in sent} == {slow} and {first, second} == {"clips/a.mp4", "clips/b.mp4"}
+    read.router.join(fast, 0.5)
+    read.router.heard(fast, 0.5, rate=10.0, queued=0)
+    read.receive(slow, PlanInfo(read.fleet.plan, None, {}, None, 2, 0.1), [], 1.0)
+    (h, move), = sent[2:]
+    assert (h, move.video, move.route, move.move, move.ordinals) == (slow, second, fast, True, sent[1][1].ordinals)
+    read.receive(slow, Moved(move.request, fast), [], 1.1)
+    (h, there), = sent[3:]
+    assert (h, there.video, there.route, there.move) == (fast, second, None, False)
+    assert read.videos[second].host == fast and read.router.hosts[slow].queued.keys() == {(0, first)}
 
 
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
