@@ -16,7 +16,8 @@ video at a time at the host's rate (samples/s per worker ``1 x`` a log-normal fa
 ``spread``), a video's decode taking its samples over that rate; stalls arrive at each host as a
 Poisson process (``stall_every_s`` apart on average, each ``stall_s`` long on average, exponential)
 and stop its workers; each host measures its own capacity (samples over its workers' busy
-seconds) and says it with each answer. The reader reads positions in order, a step of ``step``
+seconds, each sample counted as its worker makes it, as a server counts them) and says it with
+each answer and to each ping. The reader reads positions in order, a step of ``step``
 positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
 of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
 position that needs them, and says its queue (the samples every rank asked of it and it has not
@@ -24,7 +25,8 @@ made) with each answer and to each ping, which it answers unless stalled. With `
 one, each rank reads its slice of every step with its own router, asking the clips of its slice
 only, each of its arbiter (``Router.arbiter``), which places it where the first rank to ask it
 picked (at once: no round trip is modelled); a host keeps what it made and answers a later ask
-of it at once.
+of it at once. A rank that hears a host's first rate moves the clips that host would make late
+to its next pick, with every rank's make of each not started there (``Pass.rebalance``).
 
 **A fleet the HPA sizes** (:func:`autoscale`): a trainer of fixed appetite (samples/s) reads the
 epoch step by step, each once its rows are had and no sooner than its appetite allows; the
@@ -297,6 +299,10 @@ class _World:
         self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
         self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
         self.step_times: List[Tuple[int, float]] = []
+        # hosts whose rate each rank heard (a router kept from an epoch before knows them)
+        self.rated: List[Set[str]] = [{h for h, s in r.hosts.items() if s.rate} for r in routers or [Router([])]]
+        # host -> clip decoding -> (start, end, samples and busy seconds its meter counted of it)
+        self.progress: List[Dict[str, List[float]]] = [{} for _ in range(self.n)]
 
     @property
     def lookahead(self) -> int:
@@ -330,7 +336,22 @@ class _World:
             self.running[(k, clip)] = self.now
             self.decodes += 1
             end = self.stalls.finish(k, self.now, self.lay.needs[clip][1] / self.speeds[k])
+            self.progress[k][clip] = [self.now, end, 0.0, 0.0]
             heapq.heappush(self.events, (end, k, clip))
+
+    def rate(self, k: int) -> Optional[float]:
+        """Host ``k``'s capacity as it says it now: its meter counts each sample as a worker makes
+        it (a decode's samples come evenly over it), with the busy seconds up to it, as a
+        server counts them (``ServerMetrics.capacity``)."""
+        for clip, p in self.progress[k].items():
+            start, end, counted, busy = p
+            n = self.lay.needs[clip][1]
+            made = min(n - 1, int((self.now - start) / (end - start) * n)) if end > start else 0
+            if made > counted:
+                took = made * (end - start) / n
+                self.meters[k].add(made - counted, (took - busy) / self.f.slots, self.t0 + self.now)
+                p[2], p[3] = made, took
+        return self.meters[k].rate()
 
     def ask(self, rank: int, clip: str, k: int) -> None:
         self.outstanding[rank].add(clip)
@@ -361,7 +382,8 @@ class _World:
         r, at = self.routers[rank] if self.routers else None, self.t0 + self.now
         first = (rank, clip) not in self.done_at
         if r is not None:
-            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate(), self.queued[k])
+            r.answered(self.hosts[k], 0, clip, at, True, self.rate(k), self.queued[k])
+            self.heard_rate(rank, k)
         if first:
             self.done_at[(rank, clip)] = self.now
             self.outstanding[rank].discard(clip)
@@ -411,6 +433,30 @@ class _World:
         router.moved(0, clip, pick, self.hosts[to], at)
         return to
 
+    def heard_rate(self, rank: int, k: int) -> None:
+        """Rank ``rank`` heard host ``k``'s rate: the first time, the clips it queued there that
+        ``k`` would make late (``Router.overdue``) move off it to the host ``Router.move_off``
+        picks, asked of ``k`` (``Make.move``): unless ``k`` started the clip, every rank's
+        make of it waiting there moves with it, as the reader's ``Pass.rebalance``."""
+        r, h = self.routers[rank], self.hosts[k]
+        if h in self.rated[rank] or not r.hosts[h].rate:
+            return
+        self.rated[rank].add(h)
+        at, needs = self.t0 + self.now, self.needs[rank]
+        queued = [c for _, c in r.hosts[h].queued]
+        due = {c: max(0.0, needs[c][0] - self.read) / r.capacity() for c in queued}
+        whole = {c: self.lay.needs[c][1] for c in queued}
+        for c in r.overdue(h, 0, at, due, whole):
+            pick = r.move_off(h, 0, c, needs[c][1], at, due[c], self.start_by(rank, c), whole[c])
+            if pick is None or (k, c) in self.running or c in self.made_on[k] or self.stalls.silent(k, self.now):
+                continue  # started there (or the move unanswered yet): made there, where the rank waits on it
+            to = self.index[pick]
+            self.placed[k][c] = to
+            for other in sorted(self._unqueue(k, c)):  # each answered Moved: asked of the pick
+                if other != rank:
+                    self.routers[other].moved(0, c, h, pick, at)
+                self.ask(other, c, to)
+
     def advance(self) -> None:
         while self.read < self.lay.length:
             stop = min(self.lay.length, self.read + self.f.step)
@@ -431,7 +477,8 @@ class _World:
             for h in r.pings(at):  # answered by the host's server loop unless it is stalled
                 k = self.index[h]
                 if not self.stalls.silent(k, self.now):
-                    r.heard(h, at, self.meters[k].rate(), self.queued[k])
+                    r.heard(h, at, self.rate(k), self.queued[k])
+                    self.heard_rate(rank, k)
             silent = {h for h in r.hosts if r.suspect(h, at)}
             waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
             for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at):
@@ -450,7 +497,8 @@ class _World:
         """Host ``k``'s worker made ``clip``: each rank waiting on it there has it (the first
         copy a rank gets is the one it reads), and the host keeps it."""
         self.free[k] += 1
-        self.meters[k].add(self.lay.needs[clip][1], (self.now - self.running.pop((k, clip))) / self.f.slots,
+        _, _, counted, busy = self.progress[k].pop(clip)
+        self.meters[k].add(self.lay.needs[clip][1] - counted, (self.now - self.running.pop((k, clip)) - busy) / self.f.slots,
                            self.t0 + self.now)
         self.made_on[k].add(clip)
         for rank in sorted(self._unqueue(k, clip)):
@@ -856,6 +904,8 @@ class _ScaledWorld(_World):
         self.waiting = {key: r for key, r in self.waiting.items() if key[0] != k}
         self.queued[k] = 0
         self.free[k], self.queues[k], self.made_on[k], self.meters[k] = self.f.slots, [], set(), RateMeter()
+        self.progress[k] = {}
+        self.rated[0].discard(self.hosts[k])  # a pod made again under its name is measured again
         self._resize()
         needs = self.needs[0]
         for _, clip in orphans:
