@@ -196,3 +196,41 @@ def test_a_make_withdrawn_while_it_waits_is_never_decoded(tmp_path, videos):
         feed = open_stream(one.endpoint, timeout_s=30).server_feed()
         samples = {v: sum(1 for s in want if s.split("#")[0] == v) for v in firsts}  # a decode makes all of a video's
         assert feed["samples_made_by_epoch"].get(0) == samples[firsts[0]] + samples[firsts[1]]
+
+
+@pytest.mark.timeout(600)
+def test_a_make_moved_off_a_host_takes_every_readers_waiting_make_with_it_and_is_never_decoded_there(
+        tmp_path, videos):
+    """A real host of one worker decodes one reader's first video while a second video waits
+    there for two readers. One reader asks it again as a move (``Make.move``, a host it picked):
+    the host answers both readers' makes of it with ``Moved`` to that host, the move included,
+    and decodes only the first video (what its feed says it made)."""
+    import time
+
+    from v2v_client.fetch import Link
+    from v2v_client.plan_dataset import open_stream
+    from v2v_wire.plan_messages import Make, Moved, Rows
+
+    root, want, base = setup(tmp_path, videos)
+    first, second = list(dict.fromkeys(s.split("#")[0] for s in want))[:2]
+    elsewhere = "tcp://127.0.0.1:9"
+    with ServeProcess(base) as one, Link(one.endpoint, 60) as a, Link(one.endpoint, 60) as b:
+        info = a.ask()
+        a._send(Make(1, 0, first, (0,), OUTPUTS, info.plan).to_wire())
+        a._send(Make(2, 0, second, (0,), OUTPUTS, info.plan, position=5).to_wire())
+        b._send(Make(1, 0, second, (0,), OUTPUTS, info.plan, position=5).to_wire())
+        time.sleep(0.5)  # both makes of the second video wait behind the first's decode
+        a._send(Make(3, 0, second, (0,), OUTPUTS, info.plan, position=5, route=elsewhere, move=True).to_wire())
+        got = {"a": [], "b": []}
+        end = time.monotonic() + 120
+        while (len(got["a"]) < 3 or not got["b"]) and time.monotonic() < end:
+            for name, link in (("a", a), ("b", b)):
+                m = link._recv(time.monotonic() + 0.2)
+                if m is not None:
+                    got[name].append(m[0])
+        assert sorted((m.request, m.host) for m in got["a"] if isinstance(m, Moved)) == [(2, elsewhere), (3, elsewhere)]
+        assert [(m.request, m.host) for m in got["b"]] == [(1, elsewhere)]
+        assert [m.request for m in got["a"] if isinstance(m, Rows)] == [1]
+        time.sleep(2)  # the worker is idle: nothing waits on the second video
+        feed = open_stream(one.endpoint, timeout_s=30).server_feed()
+        assert feed["samples_made_by_epoch"].get(0) == sum(1 for s in want if s.split("#")[0] == first)
