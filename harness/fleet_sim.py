@@ -497,9 +497,9 @@ class _World:
         """Host ``k``'s worker made ``clip``: each rank waiting on it there has it (the first
         copy a rank gets is the one it reads), and the host keeps it."""
         self.free[k] += 1
-        _, _, counted, busy = self.progress[k].pop(clip)
-        self.meters[k].add(self.lay.needs[clip][1] - counted, (self.now - self.running.pop((k, clip)) - busy) / self.f.slots,
-                           self.t0 + self.now)
+        _, _, counted, busy = self.progress[k].pop(clip)  # the samples its meter has not counted yet
+        took = self.now - self.running.pop((k, clip))
+        self.meters[k].add(self.lay.needs[clip][1] - counted, (took - busy) / self.f.slots, self.t0 + self.now)
         self.made_on[k].add(clip)
         for rank in sorted(self._unqueue(k, clip)):
             self.had(rank, clip, k)
