@@ -300,7 +300,8 @@ class _World:
         self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
         self.step_times: List[Tuple[int, float]] = []
         # hosts whose rate each rank heard (a router kept from an epoch before knows them)
-        self.rated: List[Set[str]] = [{h for h, s in r.hosts.items() if s.rate} for r in routers or [Router([])]]
+        self.rated: List[Set[str]] = [{h for h, s in r.hosts.items() if s.rate} for r in routers] if routers \
+            else [set()]
         # host -> clip decoding -> (start, end, samples and busy seconds its meter counted of it)
         self.progress: List[Dict[str, List[float]]] = [{} for _ in range(self.n)]
 
