@@ -16,7 +16,7 @@ What a fleet's world does:
   delays each by 1-4 ticks and may lose it (the reader asks again after ``retry_s``);
 * jobs of 1-3 ranks at 1-5 rows, each rank read by 1-2 processes (DataLoader workers), each
   process's pass a ``Fleet`` of the hosts that answered at its start (the others join as they
-  answer), the windows it learned kept across its passes; each step's rows are merged by
+  answer), what it learned kept across its passes (``ReaderMemory``); each step's rows are merged by
   ``Pass.head_rows`` and the pass ends where the rows' samples say the epoch ends (as
   ``plan_dataset._read``); jobs checkpoint and resume, or roll back, in new processes at
   another layout, reading another part of the fleet.
@@ -39,7 +39,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from harness.plan_world_jobs import OUTPUTS
-from v2v_client.fleet_pass import Pass
+from v2v_client.fleet_pass import Pass, ReaderMemory
 from v2v_client.fleet_read import Fleet
 from v2v_client.plan_state import _rows
 from v2v_server.delivery.plan_orders import Order
@@ -110,9 +110,9 @@ class ReaderFleet(Fleet):
     client the hosts answer."""
 
     def __init__(self, net: "Net", reader: int, endpoint: list, plan: PlanIdentity, hedge_s: float,
-                 windows: Dict[str, int], ahead: Optional[int], now: float):
+                 memory: ReaderMemory, ahead: Optional[int], now: float):
         self.net, self.reader = net, reader
-        super().__init__(endpoint, [], plan, 120.0, None, "none", windows, ahead, hedge_s)
+        super().__init__(endpoint, [], plan, 120.0, None, "none", memory, ahead, hedge_s)
         self.resolved = now
         hedges = self.router.hedges
 
@@ -206,7 +206,7 @@ class Net:
             proc = self.readers.get(to)
             if proc is not None and proc.read is not None:
                 ep, header, frames = what
-                proc.read.receive(ep, self.wire(header), frames, now * DT)
+                proc.fleet.receive(proc.read, ep, self.wire(header), frames, now * DT)
                 proc.woken = True
 
     def serve(self, host: Host, now: int) -> None:
@@ -270,14 +270,16 @@ class Net:
 @dataclass(eq=False)
 class Proc:
     """One process of a fleet job: rank ``rank``'s items ``worker``, ``worker + workers``, ... of
-    each pass; ``windows`` it learned (kept across its passes); its pass (``read``, None between
-    passes), the items left to add (``todo``), the epoch's steps as known, where it ended."""
+    each pass; what it learned (``memory``, kept across its passes); its pass (``read``, None
+    between passes) over its ``fleet``, the items left to add (``todo``), the epoch's steps as
+    known, where it ended."""
 
     rank: int
     worker: int
     workers: int
-    windows: Dict[str, int] = field(default_factory=dict)
+    memory: ReaderMemory = field(default_factory=ReaderMemory)
     read: Optional[Pass] = None
+    fleet: Optional[Fleet] = None
     todo: object = None
     steps: Optional[int] = None
     origin: int = 0
@@ -446,7 +448,7 @@ class FleetWorld:
         job.hosts, job.resumed = len(hosts), False
         rd = next(self.reader_ids)
         plan = net.identity(hosts[0])
-        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s)
+        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.memory, job.ahead, now_s)
         for h in hosts:
             fleet.join(h.name, net.wire(net.info(h).to_wire()), now_s)
         manifest = fleet._manifest(job.epoch)
@@ -463,7 +465,7 @@ class FleetWorld:
             proc.end = proc.worker
             return
         f0 = proc.fetch_of(0, first)
-        proc.read = Pass(fleet, manifest, f0, 2, RETRY_S, now_s)
+        proc.read, proc.fleet = fleet.pass_for(manifest, f0, 2, RETRY_S, now_s), fleet
         proc.read.add(first, f0)
         proc.reader = rd
         net.readers[rd] = proc
@@ -475,12 +477,8 @@ class FleetWorld:
         read, now_s = proc.read, now * DT
         proc.woken, proc.last = False, now
         while read.window:
-            read.fleet._resolve(now_s)
-            read.fill(proc.todo, proc.fetch_of)
-            read.ask_window(now_s)
-            head = read.head_rows(now_s)
+            head = proc.fleet.turn(read, proc.todo, proc.fetch_of, now_s)
             if head is None:
-                read.rescue(now_s)
                 return
             i, rows, arrays = head
             if proc.steps is None:

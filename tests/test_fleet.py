@@ -7,6 +7,7 @@ import pytest
 
 from harness.fleet_sim import Fleet, simulate, static_padding, stay
 from v2v_wire.fleet import WEIGHT_STEP, RateMeter, Router, rank_hosts, spill_draw, weight_step
+from v2v_wire.plan_messages import PlanAsk
 
 VIDEOS = [f"clips/{i:05d}.mp4" for i in range(4000)]
 HOSTS = [f"tcp://10.0.0.{i}:5555" for i in range(8)]
@@ -325,7 +326,7 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     assert {h for h, _ in sent} == {slow} and {first, second} == {"clips/a.mp4", "clips/b.mp4"}
     read.router.join(fast, 0.5)
     read.router.heard(fast, 0.5, rate=10.0, queued=0)
-    read.receive(slow, PlanInfo(read.fleet.plan, None, {}, None, 2, 0.1), [], 1.0)
+    read.receive(slow, PlanInfo(read.identity, None, {}, None, 2, 0.1), [], 1.0)
     (h, move), = sent[2:]
     assert (h, move.video, move.route, move.move, move.ordinals) == (slow, second, fast, True, sent[1][1].ordinals)
     read.receive(slow, Moved(move.request, fast), [], 1.1)
@@ -445,31 +446,20 @@ def test_a_videos_last_host_keeps_it_past_its_load_share_while_in_time_and_not_o
 
 def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
     """A ``fleet_pass.Pass`` over a manifest of ``slots`` and a fleet of ``hosts`` (the real
-    ``Router``; each link, and those of the hosts ``others`` that may join, keeps the headers sent,
-    a ``Make``'s as the host reads it, another's type); its first step holds positions ``start`` .. ``stop - 1``."""
-    import itertools
-    from types import SimpleNamespace
-
-    from v2v_client.fleet_pass import Pass
+    ``Router``; they and the hosts ``others`` that may join take a ``Withdraw``), and its outbox,
+    which no ``Fleet`` empties here: every message it asked, in order; its first step holds
+    positions ``start`` .. ``stop - 1``."""
+    from v2v_client.fleet_pass import Pass, ReaderMemory
     from v2v_wire.plan import Manifest, PlanIdentity
-    from v2v_wire.plan_messages import Fetch, Make, Withdraw
+    from v2v_wire.plan_messages import Fetch
 
     m = Manifest.of(slots)
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
-    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, ahead=None, links={},
-                            like=None, endpoint=",".join(hosts), left_out={}, out_for_pass={}, changed={},
-                            last_served=None, stream=stream, join=lambda ep, info, now: None,
-                            withdraws={*hosts, *others})
-    sent = []
-    for h in [*hosts, *others]:
-        fleet.links[h] = SimpleNamespace(ids=itertools.count(1), compression="none",
-                                         _send=lambda header, h=h: sent.append((h, {
-                                             "make": Make, "withdraw": Withdraw}[header["type"]].from_wire(header) if (
-                                             header["type"] in ("make", "withdraw")) else header["type"])))
     first = Fetch(0, 0, start, stop, ("voxels",), plan)
-    read = Pass(fleet, m, first, 1, 5.0, now=0.0)
+    read = Pass(Router(hosts, now=0.0), ReaderMemory(), m, plan, first, 1, 5.0, ",".join(hosts),
+                withdraws={*hosts, *others}, stream=stream, now=0.0)
     read.add(0, first)
-    return read, sent
+    return read, read.outbox
 
 
 def test_a_fleet_pass_whose_first_step_holds_padding_only_takes_its_zeros_shapes_from_the_reply():
@@ -512,11 +502,11 @@ def test_a_fleet_pass_whose_every_host_left_asks_again_once_another_joins():
     read.ask_window(0.0)
     read.router.leave("h")
     read.rescue(1.0)  # no host: the makes wait
-    makes = [(h, m) for h, m in sent if m != "plan_ask"]  # a host whose rate it does not know is pinged too
+    makes = [(h, m) for h, m in sent if not isinstance(m, PlanAsk)]  # a host whose rate it does not know is pinged too
     assert [h for h, _ in makes] == ["h"]
     read.router.join("g", 2.0)
     read.rescue(2.0)
-    makes = [(h, m) for h, m in sent if m != "plan_ask"]
+    makes = [(h, m) for h, m in sent if not isinstance(m, PlanAsk)]
     assert [(h, m.video, m.ordinals) for h, m in makes] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]
 
 
@@ -542,7 +532,6 @@ def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspec
     while; its server loop still answers a ping (a plan_ask) with its queue, every reader's. Only
     a host that answers nothing, not even a ping, for hedge_s is suspect and has its videos asked
     of the next host of their ranking."""
-    from v2v_wire.plan import PlanIdentity
     from v2v_wire.plan_messages import PlanInfo
 
     r = Router(HOSTS[:2], hedge_s=10.0)
@@ -568,10 +557,9 @@ def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspec
         for t in (3.0, 6.0, 9.0, 12.0):
             n = len(sent)
             read.rescue(t)
-            if answer and (first, "plan_ask") in sent[n:]:
-                plan = read.fleet.plan
-                read.receive(first, PlanInfo(plan, None, {}, None, 400), [], t + 0.1)
-        return first, [(h, m) for h, m in sent if m != "plan_ask"]
+            if answer and (first, PlanAsk()) in sent[n:]:
+                read.receive(first, PlanInfo(read.identity, None, {}, None, 400), [], t + 0.1)
+        return first, [(h, m) for h, m in sent if not isinstance(m, PlanAsk)]
 
     first, makes = pass_answering(True)
     assert {h for h, _ in makes} == {first}  # asked again of it (retry_s), of no other host
@@ -622,7 +610,7 @@ def test_a_fleet_pass_asks_a_long_video_at_the_latest_position_its_decode_can_st
     first position, the head would wait on the long decode after the short one's."""
     long_video, short_video = VIDEOS[:2]
     read, sent = _fleet_pass({long_video: 20, short_video: 1}, HOSTS[:2], stop=1)
-    read.fleet.windows.update({long_video: 20, short_video: 1})
+    read.memory.windows.update({long_video: 20, short_video: 1})
     read.ask(long_video, (0,), 0.0, position=100)
     read.ask(short_video, (0,), 0.0, position=90)
     at = {m.video: m.position for _, m in sent}
@@ -696,14 +684,14 @@ def test_a_fleet_pass_withdraws_a_copy_once_another_hosts_answer_came_first():
         v = VIDEOS[0]
         slow, fast = rank_hosts(v, HOSTS[:2])
         read, sent = _fleet_pass({v: 1}, [slow], others=[fast], stop=1)
-        read.fleet.withdraws = {slow} if takes else set()
+        read.withdraws = {slow} if takes else set()
         read.router.heard(slow, 0.0, rate=0.1)
         read.ask_window(0.0)
         (h, first), = sent
         read.router.join(fast, 0.5)
         read.router.heard(fast, 0.5, rate=10.0, queued=0)
         read.rescue(STEAL_S + 0.5)
-        (h2, copy), = [(h, m) for h, m in sent[1:] if not isinstance(m, str)]
+        (h2, copy), = [(h, m) for h, m in sent[1:] if not isinstance(m, PlanAsk)]
         assert (h, h2) == (slow, fast)
         read.receive(fast, Rows(copy.request, 0, 0, [f"{v}#0"], [True], [{"padding": "a test"}], [], 1, 1), [],
                      STEAL_S + 1.0)

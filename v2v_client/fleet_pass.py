@@ -1,5 +1,9 @@
 """One pass of a fleet's reader over one epoch (``fleet_read.Fleet.fetch_all``): its explicit state
-and each decision of its loop. Free of torch.
+and each decision of its loop, a state machine free of I/O and of torch: the hosts' messages and
+the clock go in (:meth:`Pass.receive`, each method's ``now``), the messages for the hosts come out
+(:attr:`Pass.outbox`), and what the pass learned for the passes after it goes into the reader's
+:class:`ReaderMemory`. The ``Fleet`` does the I/O: it sends the outbox, takes the hosts' answers,
+joins and leaves out hosts (:attr:`Pass.refusing`: hosts that refuse every make of this reader).
 
 The state is the epoch's plan (``EpochPlan``, unfolding with each video's windows), the steps in
 the window (the step being read, the *head*, to ``ahead`` positions past it), what each video was
@@ -14,20 +18,22 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Set, Tuple
+from typing import Dict, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import wire_zeros_row
-from v2v_wire.plan import EpochPlan, Manifest
+from v2v_wire.fleet import Router
+from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows,
                                      Withdraw)
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
-from .fetch import BrokenPeer, PlanServerError, _with_padding, wait_readable
+from .fetch import BrokenPeer, PlanServerError, _with_padding
 
-__all__ = ["Pass", "Video", "merged", "refused", "steal", "take", "UNFOLD_PER_HOST", "STEAL_S", "HOST_REFUSALS"]
+__all__ = ["Pass", "ReaderMemory", "Video", "merged", "refused", "steal", "UNFOLD_PER_HOST", "STEAL_S",
+           "HOST_REFUSALS"]
 
 log = logging.getLogger("v2v.client")
 
@@ -62,6 +68,31 @@ def _zeros(stream: Optional[dict], outputs) -> Optional[Dict[str, np.ndarray]]:
 
 
 @dataclass
+class ReaderMemory:
+    """What a reader of a fleet keeps across its passes (one per process: ``servers.Servers``
+    holds it, pickled to its DataLoader workers), each updated in place by the passes:
+
+    * ``windows``: video path -> the windows its file gives, as the manifest or a host said;
+    * ``rates``: host endpoint -> the samples/s it said (an unchanged fleet routes each video
+      where it did);
+    * ``made``: video path -> the host whose rows of it were read last (its frame cache holds
+      the video: ``Router.route``'s ``held``);
+    * ``same``: endpoint -> the endpoint of the same host read in its place
+      (``fleet_read.alias_of``: each said once);
+    * ``known``: manifest fingerprint -> the manifest, of the plans read (a pass no host serves
+      any more names the files changed since);
+    * ``left_out``: peer endpoint -> why it is left out (``fleet_read.Fleet.leave_out``: each
+      named once)."""
+
+    windows: Dict[str, int] = field(default_factory=dict)
+    rates: Dict[str, float] = field(default_factory=dict)
+    made: Dict[str, str] = field(default_factory=dict)
+    same: Dict[str, str] = field(default_factory=dict)
+    known: Dict[str, Manifest] = field(default_factory=dict)
+    left_out: Dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
 class Video:
     """What this reader asked of one video in one pass: the host it asks, the first position that
     needs it (its makes are asked at :meth:`Pass.start_by` of it), the samples asked (ordinal -> request id),
@@ -82,20 +113,44 @@ class Pass:
     """One epoch read from a fleet (module docstring).
 
     Args:
-        fleet: the fleet read (``fleet_read.Fleet``: its hosts, router, links and learned windows).
+        router: the reader's view of the hosts (``v2v_wire.fleet.Router``: who serves, their
+            queues and rates, the placement rules); the ``Fleet`` joins and leaves hosts in it.
+        memory: what the reader keeps across passes (:class:`ReaderMemory`; updated).
         manifest: the plan's manifest.
+        identity: the plan read (its identity: every make names it).
         first: the :class:`Fetch` of the pass's first step (its epoch and outputs are the pass's).
         prefetch: steps the window holds at least.
         retry_s: seconds a make may go unanswered before it is asked again.
+        endpoint: the fleet's endpoint spec, as errors name it.
+        withdraws: the hosts that said they take a ``Withdraw`` (the ``Fleet``'s set, read live).
+        named: peers named as left out already (the ``Fleet``'s, read live): a ``Moved`` to one
+            is not named again.
+        stream: the hosts' stream info (a padding row's shapes before any row), else learned
+            from the first ``PlanInfo`` of the plan.
+        ahead: positions past the head whose videos are asked for (None: :attr:`ahead`'s rule).
         now: the clock's reading at start (default ``time.monotonic()``).
+
+    Outputs: :attr:`outbox` (``(host endpoint, message)``: ``Make``, ``PlanAsk``, ``Withdraw``;
+    a make's ``compression`` is its link's, set as the ``Fleet`` sends it), :attr:`refusing`
+    (``(host, refusal code, message)`` of a host that refuses every make of this reader: the
+    ``Fleet`` leaves it out), and :attr:`last_served` (the last step's rows by host).
     """
 
-    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float,
+    def __init__(self, router: Router, memory: ReaderMemory, manifest: Manifest, identity: PlanIdentity,
+                 first: Fetch, prefetch: int, retry_s: float, endpoint: str = "", withdraws: Set[str] = frozenset(),
+                 named: Optional[Mapping[str, str]] = None, stream: Optional[dict] = None, ahead: Optional[int] = None,
                  now: Optional[float] = None):
-        self.fleet, self.router, self.prefetch, self.retry_s = fleet, fleet.router, prefetch, retry_s
+        self.router, self.memory, self.identity, self.prefetch, self.retry_s = router, memory, identity, prefetch, retry_s
+        self.endpoint, self.withdraws, self.stream, self.fixed_ahead = endpoint, withdraws, stream, ahead
+        self.named = {} if named is None else named
         self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
-        self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)
-        self.plan.learn(fleet.windows)
+        self.plan = EpochPlan(manifest, identity.seed, first.epoch, identity.shuffle_buffer)
+        self.plan.learn(memory.windows)
+        self.outbox: List[Tuple[str, object]] = []
+        self.refusing: List[Tuple[str, str, str]] = []
+        self.requests: Dict[str, int] = {}  # host -> the last request id asked of it (each host numbers its own)
+        self.like: Optional[Dict[str, np.ndarray]] = None  # one row of each array: a padding row's zeros
+        self.last_served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the last step's rows by host
         self.window: List[int] = []
         self.spans: Dict[int, Tuple[int, int]] = {}
         self.videos: Dict[str, Video] = {}
@@ -103,18 +158,18 @@ class Pass:
         self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
         self.told: Set[str] = set()  # videos whose windows were asked for
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
-        self.heard = self.head_since = time.monotonic() if now is None else now
+        self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
         self._windows = (-1, 0)  # (videos whose windows are known, their windows summed): per_video's
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
     @property
     def ahead(self) -> int:
-        """Positions the window spans: the fleet's (``fleet.ahead``), else the router's decodes ahead
+        """Positions the window spans: the reader's (``ahead``), else the router's decodes ahead
         (``Router.ahead_decodes``) of two windows' samples each, of the hosts serving now (a fleet
         that grows mid-pass is asked ahead for all; a host's share grows once it is measured)."""
-        if self.fleet.ahead is not None:
-            return self.fleet.ahead
+        if self.fixed_ahead is not None:
+            return self.fixed_ahead
         return (self.router.ahead_decodes() or 1) * self.kpw * 2
 
     # ------------------------------------------------------------------ asking
@@ -145,13 +200,12 @@ class Pass:
         :meth:`rebalance`); of another host, or (``here``) made there: asked of one that said
         where it is placed, or a copy (a hedge, a backup request), which an arbiter would move
         back to the host it copies."""
-        link = self.fleet.links[host]
-        req = next(link.ids)
+        req = self.requests[host] = self.requests.get(host, 0) + 1
         v = self.videos.setdefault(video, Video())
         route = spill if spill is not None else "" if not (here or v.here) and host == self.router.arbiter(video, now) \
             else None
-        link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
-                        self.start_by(video), route, move).to_wire())
+        self.outbox.append((host, Make(req, self.epoch, video, ordinals, self.outputs, self.identity, "none",
+                                       self.start_by(video), route, move)))
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -160,10 +214,12 @@ class Pass:
     def ask(self, video: str, ordinals: Optional[Tuple[int, ...]], now: float, position: Optional[int] = None) -> None:
         """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
 
+        With no host to ask (every host gone, silent, left out or not joined yet) it is parked:
+        asked at the next :meth:`rescue` (the ``Fleet`` fails a pass whose every host is left out).
+
         Raises:
-            PlanServerError: a path longer than a make names, every host left out (naming each and
-                why), or every host refused a make of the video (the last refusal's line).
-            PlanMismatch: every host left out of the pass serves another plan (``Fleet.no_host_left``)."""
+            PlanServerError: a path longer than a make names, or every host refused a make of the
+                video (the last refusal's line)."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -183,7 +239,7 @@ class Pass:
             self.router.ask(v.host, self.epoch, video, count, now, self.start_by(video))
         else:
             v.host = self.router.route(self.epoch, video, count, now, exclude=list(v.refused), due=self.due(v.position),
-                                       position=self.start_by(video), held=self.fleet.made.get(video),
+                                       position=self.start_by(video), held=self.memory.made.get(video),
                                        video_samples=self.video_samples(video))
             arbiter = self.router.arbiter(video, now)
             if v.host is not None and arbiter not in (None, v.host) and arbiter not in v.refused:
@@ -191,17 +247,13 @@ class Pass:
                 self.router.moved(self.epoch, video, spill, arbiter, now)
         if v.host is not None:
             self.send(video, ordinals, v.host, now, spill)
-        elif self.router.hosts or not (self.fleet.left_out or self.fleet.out_for_pass):
-            self.parked.append((video, ordinals))  # every host gone, silent or not joined yet: asked at the next rescue
-        elif self.fleet.changed:  # never read on with samples of another version of a file
-            raise self.fleet.no_host_left(self.epoch)
         else:
-            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan: {self.fleet.left_out_line()}")
+            self.parked.append((video, ordinals))  # every host gone, silent or not joined yet: asked at the next rescue
 
     def per_video(self) -> int:
         """Samples a video gives, on average over those whose windows are known (a make of a
         video's windows decodes all of them)."""
-        w = self.fleet.windows
+        w = self.memory.windows
         if self._windows[0] != len(w):  # learned elsewhere than :meth:`receive`: counted again
             self._windows = (len(w), sum(w.values()))
         return max(1, round(self.kpw * self._windows[1] / self._windows[0])) if w else self.kpw
@@ -209,7 +261,7 @@ class Pass:
     def video_samples(self, video: str) -> int:
         """Samples a host's decode of ``video`` makes, every window's, whichever of them this
         reader asks (``Router.finish``): its windows where known, else :meth:`per_video`."""
-        windows = self.fleet.windows.get(video)
+        windows = self.memory.windows.get(video)
         return windows * self.kpw if windows else self.per_video()
 
     def start_by(self, video: str) -> int:
@@ -256,7 +308,7 @@ class Pass:
         for video in self.plan.next_videos(len(self.plan.videos)):
             if budget <= 0:
                 return
-            if video not in self.fleet.windows and video not in self.told:
+            if video not in self.memory.windows and video not in self.told:
                 self.told.add(video)
                 self.ask(video, None, now, position)
                 budget -= 1
@@ -270,7 +322,7 @@ class Pass:
         waiting there with ``Moved``, so the video is still made once. Only of a host that takes
         a ``Withdraw`` (one that does not would not move it either)."""
         s = self.router.hosts.get(host)
-        if s is None or host not in self.fleet.withdraws or host not in self.fleet.links:
+        if s is None or host not in self.withdraws:
             return
         mine = [video for e, video in s.queued if e == self.epoch and video in self.videos]
         due = {video: self.due(self.videos[video].position) for video in mine}
@@ -314,12 +366,12 @@ class Pass:
         for key in keys:
             if key is not None:
                 del self.got[(key.video, key.ordinal(self.kpw))]
-        like = next((r[3] for r in rows if not r[1]), self.fleet.like) or _zeros(self.fleet.stream, self.outputs)
+        like = next((r[3] for r in rows if not r[1]), self.like) or _zeros(self.stream, self.outputs)
         if like is None:
-            raise PlanServerError(f"{self.fleet.endpoint}: epoch {self.epoch} positions {start}..{stop - 1}: no row "
+            raise PlanServerError(f"{self.endpoint}: epoch {self.epoch} positions {start}..{stop - 1}: no row "
                                   "holds a sample and none was read before (the arrays' shapes are not known)")
         out, arrays = merged(rows, like, self.epoch, start, len(self.plan) if self.plan.complete else None)
-        self.fleet.last_served = (out, {h: sum(1 for r in rows if r[4] == h) for h in {r[4] for r in rows if not r[1]}})
+        self.last_served = (out, {h: sum(1 for r in rows if r[4] == h) for h in {r[4] for r in rows if not r[1]}})
         self.window.pop(0)
         del self.spans[head]
         self.head_since = time.monotonic() if now is None else now
@@ -331,8 +383,7 @@ class Pass:
         (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
         and the asks no host could take before."""
         for h in self.router.pings(now):  # its server loop answers a plan_ask whatever its workers do
-            if h in self.fleet.links:
-                self.fleet.links[h]._send(PlanAsk().to_wire())
+            self.outbox.append((h, PlanAsk()))
         parked, self.parked = self.parked, []
         for video, ords in parked:
             self.ask(video, ords, now)
@@ -370,9 +421,10 @@ class Pass:
             self.rebalance(ep, now)  # its first rate
 
     def _take(self, ep: str, msg, frames, now: float) -> None:
-        if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its rate and queue
+        if isinstance(msg, PlanInfo):  # a new host's (the Fleet joins it), or a ping's answer: alive, with its rate and queue
             self.router.heard(ep, now, msg.rate, msg.queued)
-            self.fleet.join(ep, msg, now)
+            if self.stream is None and not self.identity.problem(msg.plan):
+                self.stream = msg.stream
             return
         if isinstance(msg, Moved):
             self.moved(ep, msg, now)
@@ -396,11 +448,11 @@ class Pass:
         del self.flight[(ep, msg.request)]
         v = self.videos[video]
         v.flight.pop((ep, msg.request), None)
-        if msg.windows is not None and video not in self.fleet.windows:
-            self.fleet.windows[video] = msg.windows
-            if self._windows[0] == len(self.fleet.windows) - 1:
+        if msg.windows is not None and video not in self.memory.windows:
+            self.memory.windows[video] = msg.windows
+            if self._windows[0] == len(self.memory.windows) - 1:
                 self._windows = (self._windows[0] + 1, self._windows[1] + msg.windows)
-            self.plan.learn(self.fleet.windows)
+            self.plan.learn(self.memory.windows)
         if v.host != ep and (ordinals is None or any((video, o) not in self.got for o in ordinals)):
             v.host = ep  # it answered first: it holds the video's samples (and frames) for the asks that follow
         for j, o in enumerate(ordinals or ()):
@@ -408,19 +460,19 @@ class Pass:
                 continue  # another copy came first
             row = {name: a[j] for name, a in arrays.items()}
             self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
-            self.fleet.made[video] = ep
-        if self.fleet.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
-            self.fleet.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
+            self.memory.made[video] = ep
+        if self.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
+            self.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
         for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got: withdrawn where they wait
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
                 self.flight.pop(hr, None)
-                if h in self.fleet.withdraws and h in self.fleet.links:
-                    self.fleet.links[h]._send(Withdraw(hr[1]).to_wire())
+                if h in self.withdraws:
+                    self.outbox.append((h, Withdraw(hr[1])))
         self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate,
                              msg.queued)
         if msg.rate:
-            self.fleet.rates[ep] = msg.rate
+            self.memory.rates[ep] = msg.rate
         if not v.flight:
             self.router.finished(self.epoch, video)
 
@@ -443,28 +495,25 @@ class Pass:
             v.host = to
         if to == ep and not v.here:  # once a video a pass: its next makes ask the arbiter to make it
             v.here = True
-            if msg.host not in self.fleet.left_out and msg.host not in self.fleet.out_for_pass:  # not named already
+            if msg.host not in self.named:  # not named already
                 log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
         self.send(video, ordinals, to, now, here=True)
 
 
 def refused(read: "Pass", ep: str, msg: Refused, now: float) -> None:
-    """Host ``ep`` refused a make of ``read``'s: for another plan (``Fleet.other_plan``: named
-    with the files that changed, left out of the pass), every make this reader asks
-    (:data:`HOST_REFUSALS`: the host is left out, ``Fleet.leave_out``), its videos asked of their
-    next hosts either way; else the one make: asked of the next host of the video's ranking that
-    has not refused it, the host staying in the fleet.
+    """Host ``ep`` refused a make of ``read``'s: for another plan, or every make this reader asks
+    (:data:`HOST_REFUSALS`), the host is noted in ``read.refusing`` (the ``Fleet`` leaves it out of
+    the pass, ``Fleet.other_plan``, or the process, ``Fleet.leave_out``, and its videos are asked
+    of their next hosts at the next :meth:`Pass.rescue`); else the one make: asked of the next
+    host of the video's ranking that has not refused it, the host staying in the fleet.
 
     Raises:
         PlanServerError: every host refused a make of the video (:meth:`Pass.ask`)."""
     what = read.flight.pop((ep, msg.request), None)
     if what is None:
         return  # a refusal of a request asked again, or of none (-1: a message it could not read)
-    if msg.code == "plan":  # restarted on a corpus that changed: named with the files, once
-        read.fleet.other_plan(ep, f"a make refused: {msg.message}")
-        return
-    if msg.code in HOST_REFUSALS:
-        read.fleet.leave_out(ep, msg.message)
+    if msg.code == "plan" or msg.code in HOST_REFUSALS:  # a corpus that changed; outputs or a codec it lacks
+        read.refusing.append((ep, msg.code, msg.message))
         return
     video, ordinals = what
     v = read.videos[video]
@@ -494,7 +543,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             missing.setdefault(key.video, []).append(key.ordinal(read.kpw))
     if stop > read.plan.known and not read.plan.complete:  # the windows that decide the head
         for video in read.plan.next_videos(UNFOLD_PER_HOST * len(read.router.hosts)):
-            if video not in read.fleet.windows and video in read.told:
+            if video not in read.memory.windows and video in read.told:
                 missing.setdefault(video, None)
     for video, ords in missing.items():
         v = read.videos.get(video)
@@ -506,29 +555,3 @@ def steal(read: "Pass", now: float, late: bool) -> None:
                              read.video_samples(video))
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
-
-def take(read: "Pass", timeout_s: float) -> None:
-    """Wait up to half a second for the hosts' answers to pass ``read`` and take them (:meth:`Pass.receive`).
-
-    A peer that sends what cannot be read (:class:`~v2v_client.fetch.BrokenPeer`) is left out
-    (``Fleet.leave_out``) and the others' answers taken.
-
-    Raises:
-        TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
-    ready = dict(wait_readable(read.fleet.poller.poll, min(read.retry_s, 0.5)))
-    if not ready:
-        if time.monotonic() - read.heard > timeout_s:
-            late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})
-            raise TimeoutError(f"{', '.join(late) or read.fleet.endpoint}: no rows for {timeout_s} s "
-                               f"(step {read.window[0]})")
-        return
-    read.heard = time.monotonic()
-    for ep, link in list(read.fleet.links.items()):
-        while read.fleet.links.get(ep) is link and link.sock in ready and link.sock.poll(0):
-            try:
-                got = link._recv(read.heard)
-                if got is None:
-                    break
-                read.receive(ep, *got, read.heard)
-            except BrokenPeer as e:
-                read.fleet.leave_out(e.peer, e.left_out_for)

@@ -47,6 +47,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import ChainMap
+from dataclasses import replace
 from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import numpy as np
@@ -54,12 +56,12 @@ import zmq
 
 from v2v_wire.fleet import HEDGE_S, Router
 from v2v_wire.plan import Manifest, PlanIdentity, PlanMismatch
-from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, Fetch, Make, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_HEADER_BYTES
 
 from .endpoints import auto_compression, resolve_endpoints
 from .fetch import BrokenPeer, Link, PlanServerError, reply_limit, wait_readable
-from .fleet_pass import STEAL_S, Pass, take
+from .fleet_pass import HOST_REFUSALS, STEAL_S, Pass, ReaderMemory
 
 __all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fleet", "listing_diff",
            "manifest_diff", "alias_of", "HEDGE_S", "RESOLVE_S", "ASK_NEXT_S"]
@@ -247,41 +249,26 @@ class Fleet:
         timeout_s: seconds of silence from every host before ``TimeoutError``.
         curve: CurveZMQ keys (``endpoints.load_curve_keys``) or None.
         compression: the codec setting (``"auto"``: per host, ``endpoints.auto_compression``).
-        windows: video -> windows learned so far (kept by the caller across passes; updated).
-        rates: host -> the samples/s it said (kept by the caller across passes, so that an
-            unchanged fleet routes each video where it did; updated).
-        made: video -> the host whose rows of it were read last (its frame cache holds the
-            video: kept by the caller across passes, ``Router.route``'s ``held``; updated).
+        memory: what the reader keeps across passes (``fleet_pass.ReaderMemory``: the windows,
+            rates and hosts learned, the peers left out; kept by the caller, ``servers.Servers``,
+            and pickled to its DataLoader workers; updated).
         ahead: positions past the step being read whose videos are asked for (None: ten decodes
             per worker of the fleet, as ``harness.fleet_sim`` measured is needed, at least the
             prefetched steps).
         hedge_s: :data:`HEDGE_S`.
-        same: endpoint -> the endpoint of the same host read in its place (:func:`alias_of`:
-            kept by the caller across passes, so each is said once; updated).
-        known: manifest fingerprint -> the manifest, of the plans read in this process (kept by
-            the caller across passes, so that a pass no host serves any more names the files
-            changed since; updated).
-        left_out: peers left out -> why (kept by the caller across passes and pickled to its
-            DataLoader workers, so that each is named once; updated: :meth:`leave_out`).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
-                 curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
-                 hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, same: Optional[Dict[str, str]] = None,
-                 known: Optional[Dict[str, Manifest]] = None, left_out: Optional[Dict[str, str]] = None):
+                 curve: Optional[tuple], compression: str, memory: ReaderMemory, ahead: Optional[int] = None,
+                 hedge_s: float = HEDGE_S):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
-        self.compression, self.windows, self.ahead = compression, windows, ahead
-        self.rates = {} if rates is None else rates
-        self.made = {} if made is None else made
-        self.same = {} if same is None else same
-        self.known = {} if known is None else known
+        self.compression, self.memory, self.ahead = compression, memory, ahead
+        self.same, self.known, self.left_out = memory.same, memory.known, memory.left_out  # the process's, shared
         self.changed: Dict[str, str] = {}  # host -> what it serves instead of the pass's plan (other_plan)
         self.unnamed: Dict[str, Tuple[str, Optional[Manifest]]] = {}  # other_plan's before the manifest is known
         self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
-        self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
         self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
         self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
         self.withdraws: Set[str] = set()  # hosts whose PlanInfo says they take a Withdraw
@@ -291,8 +278,7 @@ class Fleet:
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
-        self.like: Optional[Dict[str, np.ndarray]] = None  # one row of each array: a padding row's zeros
-        self.last_served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the last step's rows by host
+        self.read: Optional[Pass] = None  # the pass of fetch_all
 
     def __enter__(self) -> "Fleet":
         return self
@@ -328,12 +314,12 @@ class Fleet:
         link = self._link(ep)
         codecs = info.stream.get("codecs", ())
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)
-        self.router.join(ep, now, info.rate or self.rates.get(ep), info.workers)
+        self.router.join(ep, now, info.rate or self.memory.rates.get(ep), info.workers)
 
     def leave_out(self, ep: str, why: str) -> None:
         """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
         peer left out before is not named again), its link closed (nothing more of it is
-        received), its videos' makes asked of their next hosts (``Pass.rescue``)."""
+        received, nothing more sent to it), its videos' makes asked of their next hosts (``Pass.rescue``)."""
         if ep not in self.left_out:
             log.warning("%s: left out of the fleet: %s", ep, why)
             self.left_out[ep] = why
@@ -440,7 +426,7 @@ class Fleet:
             self._name_unnamed()
             for v, n in self.manifest.slots:
                 if n is not None:
-                    self.windows.setdefault(v, n)
+                    self.memory.windows.setdefault(v, n)
         return self.manifest
 
     def _first_part(self) -> Tuple[str, ManifestPart]:
@@ -491,10 +477,108 @@ class Fleet:
                                                              if h in self.left_out)]))
 
     # ------------------------------------------------------------------ reading
+    def pass_for(self, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float, now: float) -> Pass:
+        """A pass over this fleet of the epoch of ``first`` (its first step's fetch, added), with
+        the fleet's router, the reader's memory and what it knows of its hosts."""
+        read = Pass(self.router, self.memory, manifest, self.plan, first, prefetch, retry_s, str(self.endpoint),
+                    self.withdraws, ChainMap(self.out_for_pass, self.left_out), self.stream, self.ahead, now)
+        self.read = read
+        return read
+
+    def turn(self, read: Pass, todo, fetch_of, now: float) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+        """One turn of the pass's loop: the endpoint resolved again (at most every
+        :data:`RESOLVE_S`), the window filled from ``todo`` and asked for, the head's rows
+        (``Pass.head_rows``) once known, else what it waits on rescued (``Pass.rescue``); what
+        the pass asked is sent.
+
+        Raises:
+            PlanMismatch, PlanServerError: as :meth:`check_hosts_left`; as ``Pass.ask``."""
+        self._resolve(now)
+        read.fill(todo, fetch_of)
+        read.ask_window(now)
+        head = read.head_rows(now)
+        if head is None:
+            read.rescue(now)
+        self.send_out(read)
+        if head is None:
+            self.check_hosts_left(read)
+        return head
+
+    def receive(self, read: Pass, ep: str, msg, frames, now: float) -> None:
+        """Host ``ep``'s message to pass ``read``: taken by the pass (``Pass.receive``); a host
+        that says what it serves joins (:meth:`join`); a host that refused every make of the
+        reader is left out, of the pass (another plan, :meth:`other_plan`) or of the process
+        (:meth:`leave_out`); what the pass asked is sent.
+
+        Raises:
+            BrokenPeer: rows whose arrays cannot be read (the caller leaves ``ep`` out).
+            PlanServerError: every host refused a make of a video."""
+        read.receive(ep, msg, frames, now)
+        if isinstance(msg, PlanInfo):
+            self.join(ep, msg, now)
+        refusing, read.refusing = read.refusing, []
+        for host, code, why in refusing:
+            if code in HOST_REFUSALS:
+                self.leave_out(host, why)
+            else:  # restarted on a corpus that changed: named with the files, once
+                self.other_plan(host, f"a make refused: {why}")
+        self.send_out(read)
+
+    def send_out(self, read: Pass) -> None:
+        """Send what pass ``read`` asked (its outbox, emptied), each make compressed as its host's
+        link is; nothing to a peer left out (its link is closed)."""
+        out, read.outbox = read.outbox, []
+        for ep, msg in out:
+            link = self.links.get(ep)
+            if link is None or ep in self.left_out:
+                continue
+            if isinstance(msg, Make):
+                msg = replace(msg, compression=link.compression)
+            link._send(msg.to_wire())
+
+    def check_hosts_left(self, read: Pass) -> None:
+        """Fail a pass that waits for a host while every host it had is left out.
+
+        Raises:
+            PlanMismatch: every host left out of the pass serves another plan (:meth:`no_host_left`).
+            PlanServerError: every host left out (naming each and why)."""
+        if not read.parked or self.router.hosts or not (self.left_out or self.out_for_pass):
+            return  # a host to ask, or none joined yet: the makes wait for one
+        if self.changed:  # never read on with samples of another version of a file
+            raise self.no_host_left(read.epoch)
+        raise PlanServerError(f"{self.endpoint}: no host left serving the plan: {self.left_out_line()}")
+
+    def take(self, read: Pass, heard: float) -> float:
+        """Wait up to half a second for the hosts' answers to pass ``read`` and take them
+        (:meth:`receive`); returns when a host was last heard (``heard``, or now). A peer that
+        sends what cannot be read (``fetch.BrokenPeer``) is left out (:meth:`leave_out`) and the
+        others' answers taken.
+
+        Raises:
+            TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
+        ready = dict(wait_readable(self.poller.poll, min(read.retry_s, 0.5)))
+        if not ready:
+            if time.monotonic() - heard > self.timeout_s:
+                late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})
+                raise TimeoutError(f"{', '.join(late) or self.endpoint}: no rows for {self.timeout_s} s "
+                                   f"(step {read.window[0]})")
+            return heard
+        heard = time.monotonic()
+        for ep, link in list(self.links.items()):
+            while self.links.get(ep) is link and link.sock in ready and link.sock.poll(0):
+                try:
+                    got = link._recv(heard)
+                    if got is None:
+                        break
+                    self.receive(read, ep, *got, heard)
+                except BrokenPeer as e:
+                    self.leave_out(e.peer, e.left_out_for)
+        return heard
+
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order: the rows of ``fetch_of(0,
         step)``'s positions, each made by the host its video is routed to (module docstring;
-        one pass's state and decisions: ``fleet_pass.Pass``).
+        one pass's state and decisions: ``fleet_pass.Pass``, turned by :meth:`turn`).
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the reader waited.
@@ -507,21 +591,17 @@ class Fleet:
             return
         f0 = fetch_of(0, first)
         manifest = self._manifest(f0.epoch)
-        read = Pass(self, manifest, f0, prefetch, retry_s)
+        heard = time.monotonic()
+        read = self.pass_for(manifest, f0, prefetch, retry_s, heard)
         read.add(first, f0)
         while read.window:
-            now = time.monotonic()
-            self._resolve(now)
-            read.fill(todo, fetch_of)
-            read.ask_window(now)
-            head = read.head_rows()
+            head = self.turn(read, todo, fetch_of, time.monotonic())
             if head is not None:
                 yield head
                 continue
-            read.rescue(now)
-            take(read, self.timeout_s)
+            heard = self.take(read, heard)
 
     def served(self, rows: Rows) -> Dict[str, int]:
         """{host endpoint: rows of ``rows`` (the step last yielded) holding a sample it made}."""
-        last, served = self.last_served
+        last, served = self.read.last_served if self.read is not None else (None, {})
         return dict(served) if rows is last else {}

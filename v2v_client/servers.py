@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import available, check_compression
-from v2v_wire.plan import Manifest, PlanIdentity
+from v2v_wire.plan import PlanIdentity
 from v2v_wire.plan_messages import MAX_FETCH_ROWS, PlanInfo
 from v2v_wire.plan_shards import shards_identity, shards_samples
 from v2v_wire.protocol import MAX_BATCH_BYTES
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
 from .fetch import Link, PlanServerError, Shards, reply_limit
+from .fleet_pass import ReaderMemory
 from .fleet_read import ASK_NEXT_S, Fleet, alias_of, asked_fleet, listing_diff, manifest_diff, read_manifest
 
 __all__ = ["Servers", "FLEET_ASK_S"]
@@ -42,18 +44,13 @@ class Servers:
         self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
         self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts, each with what it said last
         self.plan: Optional[PlanIdentity] = None  # a fleet's plan
-        self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
-        self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
-        self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
-        self.same: Dict[str, str] = {}  # an endpoint -> the one its host is read under (fleet_read.alias_of)
-        self.manifests: Dict[str, Manifest] = {}  # a fleet's manifests read in this process, by fingerprint
-        self.left_out: Dict[str, str] = {}  # a fleet's peers left out -> why: named once (fleet_read.Fleet)
+        self.memory = ReaderMemory()  # what this process's passes over a fleet learned and keep
         self.max_msg = MAX_BATCH_BYTES  # the largest frame a shard's reply carries (fetch.reply_limit)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["windows"] = {}  # learned again in each process: a corpus's worth is no pickle to send
-        state["manifests"] = {}
+        # the windows and manifests are learned again in each process: a corpus's worth is no pickle to send
+        state["memory"] = replace(self.memory, windows={}, known={})
         return state
 
     def ask(self, timeout_s: float, curve: Optional[tuple], prefer: Optional[PlanIdentity] = None) -> PlanInfo:
@@ -75,7 +72,7 @@ class Servers:
             with Link(servers[0], timeout_s, curve) as link:
                 infos = [link.ask()]
         else:  # asked at once: a silent or stopped first host costs no wait of its own
-            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve, self.left_out)
+            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve, self.memory.left_out)
             if not isinstance(next(iter(answered.values())).stream.get("shard"), str):
                 return self._ask_fleet(servers, answered, timeout_s, curve, prefer)
             infos = []
@@ -104,11 +101,11 @@ class Servers:
                 asked first.
             ValueError: as :meth:`ask` asked first."""
         answered = asked_fleet([ep for ep, _ in self.fleet], timeout_s, min(timeout_s, ASK_NEXT_S), curve,
-                               self.left_out)
+                               self.memory.left_out)
         serving = [ep for ep, i in answered.items() if i.plan == self.plan]
         if not serving:
             return self._replanned(self.plan, timeout_s, curve, prefer)
-        self.fleet = sorted(((ep, answered.get(ep, i)) for ep, i in self.fleet if ep not in self.left_out),
+        self.fleet = sorted(((ep, answered.get(ep, i)) for ep, i in self.fleet if ep not in self.memory.left_out),
                             key=lambda h: h[0] not in serving)
         return answered[serving[0]]
 
@@ -120,10 +117,10 @@ class Servers:
         manifest where this process read it. Every peer is asked again, one left out before
         included: what it was left out for was judged against ``old``."""
         self.fleet = self.shards = None
-        self.left_out.clear()  # in place: the fleets of this process share it
+        self.memory.left_out.clear()  # in place: the fleets of this process share it
         info = self.ask(timeout_s, curve, prefer)
         files = ""
-        before = self.manifests.get(old.manifest)
+        before = self.memory.known.get(old.manifest)
         if before is not None and self.fleet:  # (the endpoint may name one server or shards now)
             ep = self.fleet[0][0]
             try:
@@ -145,10 +142,10 @@ class Servers:
         for ep, i in infos.items():
             kept = alias_of(ep, i, names)
             if kept is not None:
-                self.same[ep] = kept
-        infos = {ep: i for ep, i in infos.items() if ep not in self.same}
+                self.memory.same[ep] = kept
+        infos = {ep: i for ep, i in infos.items() if ep not in self.memory.same}
         for ep in servers:
-            if ep not in infos and ep not in self.same and ep not in self.left_out:  # one left out was named then
+            if ep not in infos and ep not in self.memory.same and ep not in self.memory.left_out:  # one left out was named then
                 log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
                             min(timeout_s, FLEET_ASK_S))
         whole, first = next(iter(infos)), next(iter(infos.values()))
@@ -159,7 +156,7 @@ class Servers:
         plans = [i.plan for i in infos.values()]
         plan = prefer if prefer is not None and prefer in plans else first.plan
         hosts = [(ep, i) for ep, i in infos.items() if i.plan == plan]
-        _name_left_out(infos, plan, timeout_s, curve, self.left_out)
+        _name_left_out(infos, plan, timeout_s, curve, self.memory.left_out)
         self.fleet, self.shards, self.plan = hosts, [(ep, i.plan) for ep, i in hosts], plan
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in hosts}
         info = hosts[0][1]
@@ -170,9 +167,7 @@ class Servers:
         """The fetch loop over the servers: ``Shards`` (one server is one shard), or a fleet's
         (``fleet_read.Fleet``)."""
         if self.fleet is not None:
-            return Fleet(self.endpoint, self.fleet, self.plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made, same=self.same,
-                         known=self.manifests, left_out=self.left_out)
+            return Fleet(self.endpoint, self.fleet, self.plan, timeout_s, curve, self.compression, self.memory)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples, self.max_msg)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
@@ -187,7 +182,7 @@ class Servers:
                 together: one silent server cannot make the question wait once per server)."""
         deadline = time.monotonic() + timeout_s
         figures = []
-        asked = [ep for ep, _ in self.shards or () if ep not in self.left_out]  # a peer left out answers nothing
+        asked = [ep for ep, _ in self.shards or () if ep not in self.memory.left_out]  # a peer left out answers nothing
         for server in asked or resolve_endpoints(self.endpoint):
             with Link(server, max(0.0, round(deadline - time.monotonic(), 2)), curve) as link:
                 figures.append(link.ask().stream.get("feed"))
