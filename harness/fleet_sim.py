@@ -64,7 +64,7 @@ from v2v_client.fleet_pass import STEAL_S
 from v2v_wire.fleet import AHEAD_DECODES, HEDGE_S, SLACK, RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
-from harness.hpa import CPU_INITIALIZATION_S, SYNC_S, Hpa, HpaSpec, PodSample
+from harness.hpa import SYNC_S, Hpa, HpaSpec, PodSample
 
 #: Frames per sample (the paper's 40 voxels x 5 bins + 1) and frames between window starts.
 SAMPLE_FRAMES, WINDOW_STRIDE = 201, 200

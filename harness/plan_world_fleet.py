@@ -43,8 +43,9 @@ from v2v_client.fleet_pass import Pass, ReaderMemory
 from v2v_client.fleet_read import Fleet
 from v2v_client.plan_state import _rows
 from v2v_server.delivery.plan_orders import Order
+from v2v_server.service.plan_server import take_make
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity, epoch_steps
-from v2v_wire.plan_messages import (MANIFEST_PART, Fetch, Make, ManifestAsk, ManifestPart, Moved, PlanAsk, PlanInfo,
+from v2v_wire.plan_messages import (MANIFEST_PART, Fetch, Make, ManifestAsk, ManifestPart, PlanAsk, PlanInfo,
                                     Refused, Rows, Withdraw, decode_plan_client, plan_server_message)
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, pack, unpack
 
@@ -231,18 +232,10 @@ class Net:
                 self.post(reader, (host.name, Refused(msg.request, str(problem), "plan").to_wire(), []))
                 continue
             self.out.moves += msg.move
-            to, moved = s.place(msg.epoch, msg.video, msg.route, now, msg.move)
-            for o in moved:
-                self.post(o.client[0], (host.name, Moved(o.request, to).to_wire(), []))
-            if to is not None:
-                self.post(reader, (host.name, Moved(msg.request, to).to_wire(), []))
-                continue
-            try:
-                s.make((reader, msg.outputs), msg.request, msg.epoch, msg.video, msg.ordinals, now, msg.outputs,
-                       msg.position)
-            except ValueError as e:
-                self.out.problems.append(f"{host.name}: make refused: {e}")
-                self.post(reader, (host.name, Refused(msg.request, str(e), "make").to_wire(), []))
+            for client, answer in take_make(s, (reader, msg.outputs), msg, now)[1]:
+                if isinstance(answer, Refused):
+                    self.out.problems.append(f"{host.name}: make refused: {answer.message}")
+                self.post(client[0], (host.name, answer.to_wire(), []))
         host.inbox = []
         for order, rows in s.answer(now):
             self.answer(host, order, rows)

@@ -17,7 +17,7 @@ import signal
 import threading
 import time
 import uuid
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, Hashable, List, Optional, Sequence, Tuple
 
 import numpy as np
 import zmq
@@ -229,18 +229,11 @@ class PlanServer:
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         if isinstance(msg, Make):
-            to, moved = self.scheduler.place(msg.epoch, msg.video, msg.route, now, msg.move)
-            for o in moved:  # a reader moved the video off a slow host: every reader's make goes with it
-                self._send(o.client[0], Moved(o.request, to).to_wire())
-            if to is not None:  # another reader placed it there first: made once
-                self._send(ident, Moved(msg.request, to).to_wire())
-                return
-            try:
-                self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
-                                    msg.ordinals, now, msg.outputs, msg.position)
+            made, answers = take_make(self.scheduler, (ident, msg.outputs, msg.compression), msg, now)
+            for client, answer in answers:
+                self._send(client[0], answer.to_wire())
+            if made:
                 self.metrics.on_make(len(msg.ordinals or ()))
-            except ValueError as e:
-                self._send(ident, Refused(msg.request, str(e), "make").to_wire())
             return
         self.scheduler.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
                              msg.outputs)
@@ -333,6 +326,28 @@ class PlanServer:
         if err is not None:
             self.metrics.on_fs_error("frame_cache", self.frame_cache_scan.disk.folder, err)
         return usage
+
+
+def take_make(scheduler: PlanScheduler, client: Hashable, msg: Make, now: float
+              ) -> Tuple[bool, List[Tuple[Hashable, object]]]:
+    """A reader's ``Make`` (checked against the plan and the server's outputs already) taken by
+    ``scheduler`` for ``client``: placed (``PlanScheduler.place``: made here, or ``Moved`` to where
+    a reader placed it first, so it is made once; a move off this host takes every reader's make
+    of it waiting here along) and else queued (``PlanScheduler.make``; refused ``"make"`` where it
+    names what the manifest does not hold).
+
+    Returns:
+        ``(queued here, [(client, answer)])``: the answers to send now, ``Moved`` or ``Refused``,
+        each to the client (its first item the connection) whose make it answers."""
+    to, moved = scheduler.place(msg.epoch, msg.video, msg.route, now, msg.move)
+    answers: List[Tuple[Hashable, object]] = [(o.client, Moved(o.request, to)) for o in moved]
+    if to is not None:  # another reader placed it there first: made once
+        return False, answers + [(client, Moved(msg.request, to))]
+    try:
+        scheduler.make(client, msg.request, msg.epoch, msg.video, msg.ordinals, now, msg.outputs, msg.position)
+    except ValueError as e:
+        return False, answers + [(client, Refused(msg.request, str(e), "make"))]
+    return True, answers
 
 
 def _wire_row(output: str, c: ServeConfig) -> Tuple[tuple, str]:
