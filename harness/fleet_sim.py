@@ -19,7 +19,7 @@ and stop its workers; each host measures its own capacity (samples over its work
 seconds, each sample counted as its worker makes it, as a server counts them) and says it with
 each answer and to each ping. The reader reads positions in order, a step of ``step``
 positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
-of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
+of the next ``lookahead`` positions, slid with the clock while the head waits (``Router.slide``). Each host works the videos asked of it in order of the first
 position that needs them, and says its queue (the samples every rank asked of it and it has not
 made) with each answer and to each ping, which it answers unless stalled. With ``ranks`` above
 one, each rank reads its slice of every step with its own router, asking the clips of its slice
@@ -395,10 +395,15 @@ class _World:
         return first
 
     def ask_ahead(self) -> None:
+        """The ranks ask the clips of the positions in their window: :attr:`lookahead` past the
+        read, slid while the head waits on the hosts (``Router.slide``, as the reader's
+        ``Pass.reach``)."""
+        reach = self.lookahead if not self.routers else \
+            self.routers[0].slide(self.lookahead, self.now - self.head_since)
         while True:  # the ranks' next clips in the order of the positions needing them
             upto = [(self.needs[r][self.by_need[r][i]][0], r) for r, i in enumerate(self.asked_upto)
                     if i < len(self.by_need[r])]
-            if not upto or min(upto)[0] >= self.read + self.lookahead:
+            if not upto or min(upto)[0] >= self.read + reach:
                 return
             rank = min(upto)[1]
             needs, clip = self.needs[rank], self.by_need[rank][self.asked_upto[rank]]
@@ -528,6 +533,7 @@ class _World:
                 continue
             if self.routers:
                 self.hedge()
+                self.ask_ahead()  # the window slides with the clock while the head waits
                 self.settle()
             heapq.heappush(self.events, (self.now + tick, -1, ""))
 
@@ -933,6 +939,7 @@ class _ScaledWorld(_World):
                 self.made(k, tag)
             elif k == -1:
                 self.hedge()
+                self.ask_ahead()
                 self.settle()
                 heapq.heappush(self.events, (self.now + tick, -1, ""))
             elif k == -2:

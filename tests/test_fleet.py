@@ -337,11 +337,12 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
 
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
     """harness.fleet_sim with 8 ranks, each with its own router: routed by the hosts' queues and
-    placed by each clip's arbiter, a clip is made about once and the fleet near its capacity over
-    the whole epoch, seeds 0-3 (each rank bound by what it queued alone, seed 0: 1.11 decodes a
+    placed by each clip's arbiter, a clip is made about once (at most 1.05 times, issue 96's bar)
+    and the fleet near its capacity over the whole epoch, seeds 0-3: 0.91 at 1.043 decodes a clip
+    at most (docs/scaling.md; each rank bound by what it queued alone, seed 0: 1.11 decodes a
     clip, 0.75)."""
     runs = [simulate(Fleet(hosts=16, videos=4000, ranks=8, seed=s), "routed") for s in range(4)]
-    assert max(r.decodes for r in runs) < 1.04 and sum(r.share for r in runs) / len(runs) > 0.88
+    assert max(r.decodes for r in runs) <= 1.05 and sum(r.share for r in runs) / len(runs) > 0.89
 
 
 def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked_of_the_next():
@@ -403,12 +404,12 @@ def test_two_hosts_one_at_a_third_of_its_speed_routed_make_most_of_their_sum_sta
     assert routed.decodes == pytest.approx(1.0, abs=0.01)
 
 
-def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_086_of_their_summed_rate():
-    """docs/scaling.md's row: 0.86 over the whole epoch (a hard spill edge, each reader's own view
-    of the queues: 0.85); its 10-90 % stretch reads the stock made ahead before it (0.97)."""
+def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_091_of_their_summed_rate():
+    """docs/scaling.md's row: 0.92 over the whole epoch (a window fixed to the head: 0.89; a hard
+    spill edge, each reader's own view of the queues: 0.85); its 10-90 % stretch 0.95."""
     f = Fleet()  # 128 hosts, log-normal speeds (sigma 0.2), stalls
     routed, static = simulate(f, "routed"), simulate(f, "static")
-    assert routed.share >= 0.86 and routed.steady_share > 0.95
+    assert routed.share >= 0.91 and routed.steady_share > 0.93
     assert static.share < routed.share - 0.2
     assert static.positions > static.samples  # the static interleave pads; the one plan does not
     assert routed.positions == routed.samples
@@ -581,6 +582,43 @@ def test_a_fleet_pass_asks_ahead_for_the_hosts_serving_now_and_more_of_each_once
     for h in ("h", "g"):
         read.router.heard(h, 2.0, rate=5.0)
     assert read.ahead == 4 * one * AHEAD_DECODES // MEASURING_DECODES
+
+
+def test_a_readers_window_slides_while_its_head_waits_once_every_host_said_its_rate():
+    """``Router.slide``: a window fixed to the head has the hosts make all of it during one long
+    wait, then asks the next window at once, all due within seconds (docs/scaling.md); it slides
+    at the fleet's rate, at most ``SLIDE_WINDOWS`` windows, and not while a host is unmeasured."""
+    from v2v_wire.fleet import SLIDE_WINDOWS
+
+    r = Router(HOSTS[:2], now=0.0)
+    assert r.slide(100, 5.0) == 100  # nobody measured: the first measured would take what the others shed
+    r.heard(HOSTS[0], 0.0, rate=10.0)
+    assert r.slide(100, 5.0) == 100
+    r.heard(HOSTS[1], 0.0, rate=6.0)
+    assert r.slide(100, 0.0) == r.slide(100, -1.0) == 100
+    assert r.slide(100, 2.0) == 132  # 16 samples/s for 2 s
+    assert r.slide(100, 60.0) == 100 + SLIDE_WINDOWS * 100
+
+
+def test_a_fleet_pass_asks_further_ahead_while_its_head_waits_and_not_while_its_trainer_runs():
+    """``Pass.reach``: a head that waited 5 s on a host of 4 samples/s has the window span 20 more
+    positions; from when the trainer wants the next step on (``Pass.wanted``), the wait counts
+    anew."""
+    from v2v_wire.plan_messages import Fetch
+
+    read, _ = _fleet_pass({f"clips/{i:04d}.mp4": 1 for i in range(200)}, ["h"], stop=1)
+    read.router.heard("h", 0.0, rate=4.0)
+    steps = iter(range(1, 200))
+
+    def fetch_of(request, i):
+        return Fetch(request, 0, i, i + 1, ("voxels",), read.identity)
+    read.fill(steps, fetch_of, 0.0)
+    ahead = read.ahead
+    assert len(read.window) == ahead + 1  # steps of one position: positions 0 .. ahead
+    read.fill(steps, fetch_of, 5.0)
+    assert read.reach(5.0) == ahead + 20 and len(read.window) == ahead + 21
+    read.wanted(30.0)
+    assert read.reach(30.5) == ahead + 2
 
 
 def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_placed_it():

@@ -178,9 +178,19 @@ class Pass:
         self.window.append(step)
         self.spans[step] = (fetch.start, fetch.stop)
 
-    def fill(self, todo, fetch_of) -> None:
-        """Take steps from ``todo`` until the window spans ``ahead`` positions and ``prefetch`` steps."""
-        while not self.exhausted and (self.spans[self.window[-1]][0] - self.spans[self.window[0]][0] < self.ahead
+    def reach(self, now: float) -> int:
+        """Positions the window spans at ``now``: :attr:`ahead`, slid while the head waits on the
+        hosts (``Router.slide`` of the seconds since :attr:`head_since`); a fixed ``ahead`` does
+        not slide."""
+        if self.fixed_ahead is not None:
+            return self.fixed_ahead
+        return self.router.slide(self.ahead, now - self.head_since)
+
+    def fill(self, todo, fetch_of, now: Optional[float] = None) -> None:
+        """Take steps from ``todo`` until the window spans :meth:`reach` positions (``now``
+        None: :attr:`ahead`) and ``prefetch`` steps."""
+        reach = self.ahead if now is None else self.reach(now)
+        while not self.exhausted and (self.spans[self.window[-1]][0] - self.spans[self.window[0]][0] < reach
                                       or len(self.window) < self.prefetch):
             nxt = next(todo, None)
             if nxt is None:
@@ -376,6 +386,12 @@ class Pass:
         del self.spans[head]
         self.head_since = time.monotonic() if now is None else now
         return head, out, arrays
+
+    def wanted(self, now: float) -> None:
+        """The reader wants the head's rows from ``now`` on (its trainer took the last step):
+        the head waits on the hosts from then, not while the trainer ran (:meth:`reach`, the
+        copies of :func:`steal`)."""
+        self.head_since = max(self.head_since, now)
 
     # ------------------------------------------------------------------ what the head waits on
     def rescue(self, now: float) -> None:

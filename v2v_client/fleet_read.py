@@ -12,7 +12,7 @@ one plan a single server serves, each video made by the host the reader routes i
   host's decode learns them (a ``make`` of the video's windows, asked of the host the video is
   routed to, which keeps the samples it made for the makes that follow).
 * **Routing** (``v2v_wire.fleet.Router``): each video of the positions this rank reads, from the
-  step it yields to ``ahead`` positions past it, is asked (``make``: the video and the samples
+  step it yields to ``ahead`` positions past it (more while it waits, ``Router.slide``), is asked (``make``: the video and the samples
   of it this rank's rows hold) of the host its ranking and the hosts' queues pick, as each host
   says them to every reader of every job (the job's ranks and DataLoader workers route alike);
   its later samples go to the same host while it answers. A host with this reader's work that
@@ -494,7 +494,7 @@ class Fleet:
         Raises:
             PlanMismatch, PlanServerError: as :meth:`check_hosts_left`; as ``Pass.ask``."""
         self._resolve(now)
-        read.fill(todo, fetch_of)
+        read.fill(todo, fetch_of, now)
         read.ask_window(now)
         head = read.head_rows(now)
         if head is None:
@@ -598,6 +598,7 @@ class Fleet:
             head = self.turn(read, todo, fetch_of, time.monotonic())
             if head is not None:
                 yield head
+                read.wanted(time.monotonic())
                 continue
             heard = self.take(read, heard)
 
