@@ -267,21 +267,21 @@ def test_a_videos_arbiter_has_it_made_where_the_first_reader_placed_it():
 
 def test_a_host_measured_slow_lists_the_videos_it_would_make_late_and_each_moves_to_the_next_pick():
     """``Router.overdue``: of the videos queued on a host, those it would make past ``1 + slack``
-    of their due at the rate it said, in the order it works them, its first per worker left (it
-    started them); none on a host as fast as it was taken for. ``Router.move_off`` routes one
-    again without that host and its queue leaves it."""
+    of their due at the rate it said, in the order it works them (the host keeps those it
+    started); none on a host as fast as it was taken for. ``Router.move_off`` routes one again
+    without that host and its queue leaves it."""
     r = Router(HOSTS[:2], now=0.0)
     slow, fast = HOSTS[:2]
     for i, v in enumerate(VIDEOS[:4]):
         r.ask(slow, 0, v, 2, 0.0, position=10 * i)
-    due = {v: 10 * i / 20.0 for i, v in enumerate(VIDEOS[:4])}  # the head reads 20 positions/s
+    due = {v: 10 * (i + 1) / 20.0 for i, v in enumerate(VIDEOS[:4])}  # the head reads 20 positions/s
     whole = dict.fromkeys(VIDEOS[:4], 2)
     r.heard(fast, 1.0, rate=20.0)
     r.heard(slow, 1.0, rate=20.0)
     assert r.overdue(slow, 0, 1.0, due, whole) == []
     r.heard(slow, 1.0, rate=1.0)
-    assert r.overdue(slow, 0, 1.0, due, whole) == VIDEOS[1:4]
-    assert r.overdue(slow, 0, 1.0, {**due, VIDEOS[2]: None}, whole) == [VIDEOS[1], VIDEOS[3]]
+    assert r.overdue(slow, 0, 1.0, due, whole) == VIDEOS[:4]
+    assert r.overdue(slow, 0, 1.0, {**due, VIDEOS[2]: None}, whole) == [VIDEOS[0], VIDEOS[1], VIDEOS[3]]
     assert r.move_off(slow, 0, VIDEOS[1], 2, 1.0, due[VIDEOS[1]], 10, 2) == fast
     assert (0, VIDEOS[1]) not in r.hosts[slow].queued and r.hosts[fast].queued[(0, VIDEOS[1])] == 2
     assert r.asked[(0, VIDEOS[1])] == [fast]
@@ -316,7 +316,8 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     """A host is asked videos before its first decodes measure it. Once it says a rate at which
     a video asked of it would be made later than its due (``Router.overdue``), the pass asks it
     again as a move to the host its rules pick (``Make.move``, ``route``), and follows the
-    ``Moved`` answer there; the host's first make (it started it) stays."""
+    ``Moved`` answer there; each video it would make late is asked so, the first too (a host
+    keeps one it started)."""
     from v2v_wire.plan_messages import Moved, PlanInfo
 
     slow, fast = HOSTS[:2]
@@ -327,18 +328,21 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     read.router.join(fast, 0.5)
     read.router.heard(fast, 0.5, rate=10.0, queued=0)
     read.receive(slow, PlanInfo(read.identity, None, {}, None, 2, 0.1), [], 1.0)
-    (h, move), = sent[2:]
-    assert (h, move.video, move.route, move.move, move.ordinals) == (slow, second, fast, True, sent[1][1].ordinals)
+    moves = {m.video: (h, m) for h, m in sent[2:]}
+    assert moves.keys() == {first, second}
+    h, move = moves[second]
+    assert (h, move.route, move.move, move.ordinals) == (slow, fast, True, sent[1][1].ordinals)
+    n = len(sent)
     read.receive(slow, Moved(move.request, fast), [], 1.1)
-    (h, there), = sent[3:]
+    (h, there), = sent[n:]
     assert (h, there.video, there.route, there.move) == (fast, second, None, False)
-    assert read.videos[second].host == fast and read.router.hosts[slow].queued.keys() == {(0, first)}
+    assert read.videos[second].host == fast and not read.router.hosts[slow].queued
 
 
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
     """harness.fleet_sim with 8 ranks, each with its own router: routed by the hosts' queues and
     placed by each clip's arbiter, a clip is made about once (at most 1.05 times, issue 96's bar)
-    and the fleet near its capacity over the whole epoch, seeds 0-3: 0.91 at 1.043 decodes a clip
+    and the fleet near its capacity over the whole epoch, seeds 0-3: 0.91 at 1.050 decodes a clip
     at most (docs/scaling.md; each rank bound by what it queued alone, seed 0: 1.11 decodes a
     clip, 0.75)."""
     runs = [simulate(Fleet(hosts=16, videos=4000, ranks=8, seed=s), "routed") for s in range(4)]
@@ -406,7 +410,7 @@ def test_two_hosts_one_at_a_third_of_its_speed_routed_make_most_of_their_sum_sta
 
 def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_091_of_their_summed_rate():
     """docs/scaling.md's row: 0.92 over the whole epoch (a window fixed to the head: 0.89; a hard
-    spill edge, each reader's own view of the queues: 0.85); its 10-90 % stretch 0.95."""
+    spill edge, each reader's own view of the queues: 0.85); its 10-90 % stretch 1.04."""
     f = Fleet()  # 128 hosts, log-normal speeds (sigma 0.2), stalls
     routed, static = simulate(f, "routed"), simulate(f, "static")
     assert routed.share >= 0.91 and routed.steady_share > 0.93

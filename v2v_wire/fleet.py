@@ -426,16 +426,20 @@ class Router:
         """The videos of ``epoch`` this reader queued on ``host`` that it would make, at the rate it
         said (:meth:`finish`, ``video_samples``: each one's whole decode), later than ``1 +
         slack`` times their ``due`` (seconds until the reader's head needs each; None: not
-        judged), in the order the host works them, its first ``workers`` left (it has started
-        them). A host is loaded before its first decodes measure it (:data:`MEASURING_DECODES`);
-        one that turns out slow holds the epoch's first videos, which the head would wait on one
-        by one: a reader that hears its first rate moves these off it (:meth:`move_off`)."""
+        judged), in the order the host works them. A host is loaded before its first decodes
+        measure it (:data:`MEASURING_DECODES`); one that turns out slow holds the epoch's first
+        videos, which the head would wait on one by one: a reader that hears its first rate
+        moves these off it (:meth:`move_off`). None is left as started: a reader cannot tell
+        which the host started (a job's readers each queue a few slices of its videos, so
+        leaving each reader's first per worker left them all: 32 simulated readers at sigma 0.5,
+        seed 0, 0.66 -> 0.86 of the hosts' capacity), and the host keeps those it started
+        (``Make.move``)."""
         s = self.hosts.get(host)
         if s is None or not s.rate:
             return []
         mine = sorted((ev for ev in s.queued if ev[0] == epoch), key=lambda ev: s.at.get(ev, 0))
         out = []
-        for _, video in mine[s.workers:]:
+        for _, video in mine:
             d = due.get(video)
             if d is not None and self.finish(host, 0, s.at.get((epoch, video)), now, video_samples[video]) > \
                     (1 + self.slack) * d:
