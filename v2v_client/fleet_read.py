@@ -263,7 +263,6 @@ class Fleet:
                  hedge_s: float = HEDGE_S):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.memory, self.ahead = compression, memory, ahead
-        self.same, self.known, self.left_out = memory.same, memory.known, memory.left_out  # the process's, shared
         self.changed: Dict[str, str] = {}  # host -> what it serves instead of the pass's plan (other_plan)
         self.unnamed: Dict[str, Tuple[str, Optional[Manifest]]] = {}  # other_plan's before the manifest is known
         self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
@@ -302,11 +301,11 @@ class Fleet:
         if problem:
             self.other_plan(ep, problem.removeprefix("another plan: "))
             return
-        if ep in self.router.hosts or ep in self.same or ep in self.left_out:
+        if ep in self.router.hosts or ep in self.memory.same or ep in self.memory.left_out:
             return
         kept = alias_of(ep, info, self.names)
         if kept is not None:
-            self.same[ep] = kept
+            self.memory.same[ep] = kept
             return
         self.stream = self.stream or info.stream
         if info.withdraws:
@@ -320,9 +319,9 @@ class Fleet:
         """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
         peer left out before is not named again), its link closed (nothing more of it is
         received, nothing more sent to it), its videos' makes asked of their next hosts (``Pass.rescue``)."""
-        if ep not in self.left_out:
+        if ep not in self.memory.left_out:
             log.warning("%s: left out of the fleet: %s", ep, why)
-            self.left_out[ep] = why
+            self.memory.left_out[ep] = why
         self.router.leave(ep)
         link = self.links.pop(ep, None)
         if link is not None:
@@ -331,7 +330,7 @@ class Fleet:
 
     def left_out_line(self) -> str:
         """Each peer left out, for the process or this pass, and why, as one clause (``"a: why; b: why"``)."""
-        return "; ".join(f"{ep}: {why}" for ep, why in {**self.out_for_pass, **self.left_out}.items())
+        return "; ".join(f"{ep}: {why}" for ep, why in {**self.out_for_pass, **self.memory.left_out}.items())
 
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""
@@ -343,7 +342,7 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - {*self.out_for_pass, *self.same, *self.left_out}):
+        for ep in sorted(current - set(self.router.hosts) - {*self.out_for_pass, *self.memory.same, *self.memory.left_out}):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
@@ -356,7 +355,7 @@ class Fleet:
         manifests are not known; before the pass's manifest is read, once it is (:meth:`_manifest`)
         unless not ``defer``. A peer not of the fleet's hosts (one that never served its plan:
         a made-up plan) is left out for the process instead (:meth:`leave_out`)."""
-        if ep in self.out_for_pass or ep in self.left_out:
+        if ep in self.out_for_pass or ep in self.memory.left_out:
             return
         if ep not in self.members:
             self.leave_out(ep, f"it serves another plan: {why}")
@@ -409,7 +408,7 @@ class Fleet:
         if self.manifest is None:
             while self.manifest is None:
                 if not self.router.hosts and self.unnamed:  # each left out for serving another manifest
-                    self.manifest = self.known.get(self.plan.manifest)
+                    self.manifest = self.memory.known.get(self.plan.manifest)
                     self._name_unnamed()
                     raise self.no_host_left(epoch)
                 ep, first = self._first_part()
@@ -422,7 +421,7 @@ class Fleet:
                     self.manifest = got
                 else:
                     self.other_plan(ep, f"manifest {got.fingerprint()}", got)
-            self.known[self.plan.manifest] = self.manifest
+            self.memory.known[self.plan.manifest] = self.manifest
             self._name_unnamed()
             for v, n in self.manifest.slots:
                 if n is not None:
@@ -447,8 +446,8 @@ class Fleet:
         deadline = time.monotonic() + self.timeout_s
         silent: List[str] = []
         refused: Dict[str, str] = {}
-        while any(h not in refused and h not in self.left_out for h in hosts):
-            for ep in [h for h in hosts if h not in refused and h not in self.left_out]:
+        while any(h not in refused and h not in self.memory.left_out for h in hosts):
+            for ep in [h for h in hosts if h not in refused and h not in self.memory.left_out]:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"{', '.join(silent) or self.endpoint}: no manifest within {self.timeout_s} s (each host "
@@ -473,15 +472,15 @@ class Fleet:
                     self.out_for_pass[h] = why.removeprefix(f"{h}: ")
                     self.router.leave(h)
                 return ep, first
-        raise PlanServerError("; ".join([*refused.values(), *(f"{h}: {self.left_out[h]}" for h in hosts
-                                                             if h in self.left_out)]))
+        raise PlanServerError("; ".join([*refused.values(), *(f"{h}: {self.memory.left_out[h]}" for h in hosts
+                                                             if h in self.memory.left_out)]))
 
     # ------------------------------------------------------------------ reading
     def pass_for(self, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float, now: float) -> Pass:
         """A pass over this fleet of the epoch of ``first`` (its first step's fetch, added), with
         the fleet's router, the reader's memory and what it knows of its hosts."""
         read = Pass(self.router, self.memory, manifest, self.plan, first, prefetch, retry_s, str(self.endpoint),
-                    self.withdraws, ChainMap(self.out_for_pass, self.left_out), self.stream, self.ahead, now)
+                    self.withdraws, ChainMap(self.out_for_pass, self.memory.left_out), self.stream, self.ahead, now)
         self.read = read
         return read
 
@@ -530,7 +529,7 @@ class Fleet:
         out, read.outbox = read.outbox, []
         for ep, msg in out:
             link = self.links.get(ep)
-            if link is None or ep in self.left_out:
+            if link is None or ep in self.memory.left_out:
                 continue
             if isinstance(msg, Make):
                 msg = replace(msg, compression=link.compression)
@@ -542,7 +541,7 @@ class Fleet:
         Raises:
             PlanMismatch: every host left out of the pass serves another plan (:meth:`no_host_left`).
             PlanServerError: every host left out (naming each and why)."""
-        if not read.parked or self.router.hosts or not (self.left_out or self.out_for_pass):
+        if not read.parked or self.router.hosts or not (self.memory.left_out or self.out_for_pass):
             return  # a host to ask, or none joined yet: the makes wait for one
         if self.changed:  # never read on with samples of another version of a file
             raise self.no_host_left(read.epoch)

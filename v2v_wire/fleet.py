@@ -114,9 +114,9 @@ MEASURING_DECODES = 2
 #: A window fixed to the head has the hosts make all of it during one long wait, then asks the
 #: next window at once when the head moves on, every video of it due within seconds: the readers
 #: send them to the few hosts that would make them soonest, which the head then waits on one by
-#: one. 128 simulated hosts, whole epoch, seeds 0 and 1: one reader 0.89 -> 0.90 (sigma 0.2 and
-#: 0.5), 8 readers at sigma 0.5 0.78 -> 0.87 (docs/scaling.md); the rows a reader holds grow by
-#: as much, at most.
+#: one. 128 simulated hosts, whole epoch, seeds 0-2: one reader 0.91/0.89 -> 0.92/0.91 (sigma
+#: 0.2/0.5), 8 readers at sigma 0.5 0.80 -> 0.88 (docs/scaling.md); the rows a reader holds grow
+#: by as much, at most.
 SLIDE_WINDOWS = 1
 
 
