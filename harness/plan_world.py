@@ -146,6 +146,7 @@ class Outcome:
     fleet_joins: int = 0
     fleet_leaves: int = 0
     fleet_stalls: int = 0
+    fleet_dead_names: int = 0  # hosts killed whose names stayed where the readers resolve the fleet
     fleet_restarts: int = 0
     fleet_resumes: int = 0
     resized: int = 0  # resumes read on with another number of hosts than the position was taken with
@@ -437,8 +438,8 @@ class World:
 
 #: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
-          "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_stalls", "fleet_restarts",
-          "fleet_resumes", "resized", "hedged", "copies", "withdrawn", "moves", "cut_off", "counted", "counted_readers",
+          "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_dead_names", "fleet_stalls",
+          "fleet_restarts", "fleet_resumes", "resized", "hedged", "copies", "withdrawn", "moves", "cut_off", "counted", "counted_readers",
           "counted_batch", "counted_long", "counted_cut")
 
 

@@ -7,7 +7,10 @@ What a fleet's world does:
 
 * hosts join mid-epoch (their name appears where the readers resolve the fleet; a reader asks
   it what it serves and it joins at its answer), leave (killed: its scheduler, made samples and
-  makes gone; its name goes after a lag), stall (answer nothing for 10-80 s: hedges and copies
+  makes gone; its name goes after a lag, or, a third of the time, stays, as in a static list of
+  endpoints: hedges take over what it held; :data:`DOOMED` of the hosts die so as soon as they
+  answer a make saying their first rate, which is when a reader moves what that rate makes late
+  off them), stall (answer nothing for 10-80 s: hedges and copies
   of what the head waits on take over) and restart (a fresh ``PlanScheduler`` and pool, after a
   while down, under the same name or a new one); their workers stall, die and hang as a
   server's do (``World.decode``);
@@ -57,6 +60,9 @@ RETRY_S = 6.0
 POLL = 3
 #: Most hosts up at once.
 MOST_HOSTS = 16
+#: The share of hosts killed as soon as they answer a make saying their first rate, their names
+#: left where the readers resolve the fleet (a static list of endpoints).
+DOOMED = 0.05
 #: Bytes of a sample's content (:func:`content`), its one array (``"bytes"``).
 WIDTH = 8
 #: The recipe's shapes a host says (a padding row's zeros, read before any reply, follow them).
@@ -84,6 +90,8 @@ class Host:
     stalled_until: int = 0
     inbox: list = field(default_factory=list)
     withdraws: bool = True  # takes a Withdraw (an older server does not, and refuses one)
+    said_rate: bool = False  # it answered a make saying its rate
+    doomed: bool = False  # killed once it said its first rate (a reader moves what it measured late off it then)
 
 
 class Link:
@@ -117,8 +125,8 @@ class ReaderFleet(Fleet):
         self.resolved = now
         hedges = self.router.hedges
 
-        def counted(waiting, at, refused=None):
-            out = hedges(waiting, at, refused)
+        def counted(waiting, at, refused=None, awaited=None):
+            out = hedges(waiting, at, refused, awaited)
             net.out.hedged += len(out)
             return out
         self.router.hedges = counted
@@ -140,6 +148,10 @@ class Net:
         self.queue: list = []  # (due tick, number, to, what)
         self.sent = 0
         self.readers: Dict[int, object] = {}  # reader number -> its process (FleetWorld's Proc)
+        self.now, self.hedge_s = 0, 0.0  # the tick; the readers' hedge_s (FleetWorld's)
+        self.none_live = 0  # the last tick no host was up and not stalled
+        self.down_since: Dict[tuple, list] = {}  # (reader, epoch, video) -> [tick, hosts]: makes to hosts down since one up
+        self.stuck: set = set()  # those judged: each named once
         self.asked: Dict[tuple, str] = {}  # (reader, epoch, video, ordinals) -> the first host asked
         self.now = 0
 
@@ -174,11 +186,33 @@ class Net:
             if host is not None and host.up:
                 link.replies.append((self.wire(self.manifest_part(host, msg.offset).to_wire()), []))
             return
+        if isinstance(msg, Make) and host is not None:
+            self.judge_dead(link.reader, msg, host)
         if isinstance(msg, Make) and msg.ordinals is not None:
             ask = (link.reader, msg.epoch, msg.video, msg.ordinals)
             if self.asked.setdefault(ask, link.endpoint) != link.endpoint:
                 self.out.copies += 1
         self.post(link.endpoint, (link.reader, msg))
+
+    def judge_dead(self, reader: int, msg: Make, host: Host) -> None:
+        """A reader that keeps asking a video of hosts that are down, while another host is up
+        and not stalled, asks it of another host within ``hedge_s`` and three ``RETRY_S`` (its
+        silence found, a hedge, a reply's lag): else it would wait on them for good (a move
+        asked of a host that died before it answered, awaited where its queue is no more)."""
+        key = (reader, msg.epoch, msg.video)
+        if host.up:
+            self.down_since.pop(key, None)
+            return
+        stretch = self.down_since.setdefault(key, [self.now, set()])
+        if host.name not in stretch[1]:  # a host it had not asked: a hedge, which found it down too
+            stretch[0] = self.now
+            stretch[1].add(host.name)
+        since = max(stretch[0], self.none_live)
+        if self.now - since > (self.hedge_s + 3 * RETRY_S) / DT and key not in self.stuck:
+            self.stuck.add(key)
+            self.out.problems.append(f"reader {reader} asked {msg.video} of epoch {msg.epoch} of hosts down "
+                                     f"({', '.join(sorted(stretch[1]))}) from tick {since} to {self.now}, while a host "
+                                     "was up, and of no other host")
 
     @staticmethod
     def wire(header: dict):
@@ -197,6 +231,8 @@ class Net:
         """The messages due at ``now``: to a host's inbox (none to a host down), to a reader's pass
         (none to a pass that ended: its sockets are closed)."""
         self.now = now
+        if not any(h.up and now >= h.stalled_until for h in self.hosts.values()):
+            self.none_live = now
         while self.queue and self.queue[0][0] <= now:
             _, _, to, what = heapq.heappop(self.queue)
             if isinstance(to, str):
@@ -252,6 +288,7 @@ class Net:
             if r.sample[:2] != (o.epoch, r.key) or not set(o.client[1]) <= set(r.sample[2]):
                 self.out.problems.append(f"{host.name}: make of {r.key} in epoch {o.epoch} answered with {r.sample}")
             real.append(content(seed, r.sample[0], r.sample[1].sample_id(kpw)))
+        host.said_rate = host.said_rate or self.rate(host) is not None
         specs, frames = encode_arrays({"bytes": np.stack(real) if real else np.zeros((0, WIDTH), np.uint8)})
         head = Rows(o.request, o.epoch, 0, [r.key.sample_id(kpw) for r in rows], [r.padding for r in rows],
                     [{} if r.sample is not None else {"padding": r.reason} for r in rows], specs,
@@ -320,7 +357,7 @@ class FleetWorld:
         self.later: list = []  # (tick, what, host): a name leaving the dns, a host coming up
         self.names = 0
         self.pool = rng.randint(1, 2)
-        self.hedge_s = rng.choice([2.0, 10.0])
+        self.hedge_s = self.net.hedge_s = rng.choice([2.0, 10.0])
         self.event_p = rng.choice([0.005, 0.01, 0.02])
         for _ in range(rng.choice([1, 1, 2, 3, 4, 6, 8, 12, 16])):
             self.add_host()
@@ -344,7 +381,8 @@ class FleetWorld:
         name = f"tcp://10.0.{self.names // 250}.{self.names % 250 + 1}:5555"
         # a quarter of the hosts are older servers, which take no Withdraw (drawn apart from the world's stream)
         older = hashlib.sha256(f"{self.world.seed} {name}".encode()).digest()[0] < 64
-        host = self.net.hosts[name] = Host(name, sorted(self.world.slots), withdraws=not older)
+        host = self.net.hosts[name] = Host(name, sorted(self.world.slots), withdraws=not older,
+                                           doomed=self.rng.random() < DOOMED)
         self.world.start(host, self.pool)
         self.dns.append(name)
         self.world.out.big_fleets = max(self.world.out.big_fleets, int(len(self.up()) >= 8))
@@ -366,6 +404,10 @@ class FleetWorld:
                 host.up = True
             elif what == "new":
                 self.add_host()
+        for host in self.up():
+            if host.doomed and host.said_rate and len(self.up()) > 1:
+                self.kill(host)  # its name stays
+                out.fleet_dead_names += 1
         if rng.random() >= self.event_p:
             return
         up = self.up()
@@ -376,7 +418,10 @@ class FleetWorld:
         elif kind == "leave" and len(up) > 1:
             host = rng.choice(up)
             self.kill(host)
-            self.later.append((now + rng.randint(0, 50), "gone", host))
+            if rng.random() < 1 / 3:  # a static list of endpoints: its name stays, and it answers nothing
+                out.fleet_dead_names += 1
+            else:
+                self.later.append((now + rng.randint(0, 50), "gone", host))
             out.fleet_leaves += 1
         elif kind == "stall" and up:
             rng.choice(up).stalled_until = now + rng.randint(50, 400)

@@ -339,6 +339,35 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     assert read.videos[second].host == fast and not read.router.hosts[slow].queued
 
 
+def test_a_host_that_dies_before_it_answers_a_move_is_hedged_though_its_queue_moved_off_it():
+    """A host measured slow is asked its late videos again as moves, which take its queue off it in
+    the reader's router; it dies before it answers (a static list of endpoints keeps its name). The
+    requests awaited there still make it silent: it is pinged, and each video is asked of the host
+    the move picked once it has said nothing for ``hedge_s``, not waited on for good."""
+    from v2v_wire.plan_messages import Make, PlanInfo
+
+    slow, fast = HOSTS[:2]
+    read, sent = _fleet_pass({"clips/a.mp4": 1, "clips/b.mp4": 1}, [slow], others=[fast], stop=2)
+    read.ask_window(0.0)
+    read.router.join(fast, 0.5)
+    read.router.heard(fast, 0.5, rate=10.0, queued=0)
+    read.receive(slow, PlanInfo(read.identity, None, {}, None, 2, 0.1), [], 1.0)
+    moves = [m for h, m in sent if isinstance(m, Make) and m.move]
+    assert len(moves) == 2 and not read.router.hosts[slow].queued  # both moved: nothing queued there
+    n, t = len(sent), 1.0
+    while t + 0.5 < 1.0 + read.router.hedge_s:  # it answers nothing from here on; the other host answers pings
+        t += 0.5
+        read.rescue(t)
+        assert all(h == slow for h, m in sent[n:] if isinstance(m, Make))  # asked again there, retry_s apart
+        for h, m in sent[n:]:
+            if h == fast:
+                read.receive(fast, PlanInfo(read.identity, None, {}, 0, 2, 10.0), [], t)
+        n = len(sent)
+    assert any(h == slow and not isinstance(m, Make) for h, m in sent)  # pinged while awaited
+    read.rescue(t + 0.5)
+    assert {m.video for h, m in sent[n:] if isinstance(m, Make) and h == fast} == {"clips/a.mp4", "clips/b.mp4"}
+
+
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
     """harness.fleet_sim with 8 ranks, each with its own router: routed by the hosts' queues and
     placed by each clip's arbiter, a clip is made about once (at most 1.05 times, issue 96's bar)

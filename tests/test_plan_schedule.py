@@ -23,10 +23,11 @@ def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
     ``load_state_dict`` at their next pass, resuming at other layouts and rolling back to older
     checkpoints, cut off mid-epoch and started again; outputs widened mid-run. A third of the
     seeds run a fleet of 1-16 hosts serving one plan (``harness.plan_world_fleet``) that join,
-    leave, stall and restart under the same or a new name, read through the client's
-    ``fleet_pass.Pass`` and ``Router`` over a transport that delays and loses messages: each
-    position once, its bytes, padding only where one server puts it, each pass ended at the
-    epoch's end, positions resumed on another number of hosts. Where one job reads at a time (a
+    leave (their names staying, as in a static list, or not), stall and restart under the same or
+    a new name, read through the client's ``fleet_pass.Pass`` and ``Router`` over a transport
+    that delays and loses messages: each position once, its bytes, padding only where one server
+    puts it, each pass ended at the epoch's end, positions resumed on another number of hosts,
+    no video asked of dead hosts only for long while a host is up. Where one job reads at a time (a
     job cut off and started again included), no server restarts and no output widens, each sample
     read is made once (1.05 made a sample read at most), in jobs of 16 readers and more, at 16
     rows a rank and more, over videos of 20 samples and more (``World.judge_decodes``). Replay a seed with ``python -m harness.plan_world --seeds N:N+1``."""

@@ -32,7 +32,7 @@ from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import BrokenPeer, PlanServerError, _with_padding
 
-__all__ = ["Pass", "ReaderMemory", "Video", "merged", "refused", "steal", "UNFOLD_PER_HOST", "STEAL_S",
+__all__ = ["Pass", "ReaderMemory", "Flights", "Video", "merged", "refused", "steal", "UNFOLD_PER_HOST", "STEAL_S",
            "HOST_REFUSALS"]
 
 log = logging.getLogger("v2v.client")
@@ -90,6 +90,37 @@ class ReaderMemory:
     same: Dict[str, str] = field(default_factory=dict)
     known: Dict[str, Manifest] = field(default_factory=dict)
     left_out: Dict[str, str] = field(default_factory=dict)
+
+
+class Flights(dict):
+    """``(host, request id) -> (video, ordinals)``: a pass's makes in flight, counted by host in
+    :attr:`hosts` (host -> requests; the ``Router``'s ``awaited``, so a host it awaits a request
+    of is pinged and, silent, hedged whatever its queue holds). Taken out by ``del`` and ``pop``."""
+
+    def __init__(self):
+        super().__init__()
+        self.hosts: Dict[str, int] = {}
+
+    def __setitem__(self, key: Tuple[str, int], value) -> None:
+        if key not in self:
+            self.hosts[key[0]] = self.hosts.get(key[0], 0) + 1
+        super().__setitem__(key, value)
+
+    def __delitem__(self, key: Tuple[str, int]) -> None:
+        super().__delitem__(key)
+        self._less(key[0])
+
+    def pop(self, key: Tuple[str, int], *default):
+        if key in self:
+            self._less(key[0])
+        return super().pop(key, *default)
+
+    def _less(self, host: str) -> None:
+        n = self.hosts[host] - 1
+        if n:
+            self.hosts[host] = n
+        else:
+            del self.hosts[host]
 
 
 @dataclass
@@ -155,7 +186,8 @@ class Pass:
         self.spans: Dict[int, Tuple[int, int]] = {}
         self.videos: Dict[str, Video] = {}
         self.got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (id, padding, params, arrays row, host)
-        self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
+        self.flight = Flights()  # (host, request) -> asked
+        router.awaited = self.flight.hosts
         self.told: Set[str] = set()  # videos whose windows were asked for
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.head_since = time.monotonic() if now is None else now
@@ -216,6 +248,7 @@ class Pass:
             else None
         self.outbox.append((host, Make(req, self.epoch, video, ordinals, self.outputs, self.identity, "none",
                                        self.start_by(video), route, move)))
+        self.router.awaits(host, now)
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -404,8 +437,9 @@ class Pass:
         for video, ords in parked:
             self.ask(video, ords, now)
         waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
+        awaited = {video: {h for h, _, _ in v.flight.values()} for video, v in self.videos.items() if v.flight}
         for _, video, host in self.router.hedges(waiting, now, {video: v.refused for video, v in self.videos.items()
-                                                                 if v.refused}):
+                                                                 if v.refused}, awaited):
             v = self.videos[video]
             v.host = host
             for h, ords, _ in list(v.flight.values()):
@@ -414,14 +448,15 @@ class Pass:
         for video, v in list(self.videos.items()):
             for hr, (h, ords, at) in list(v.flight.items()):
                 gone = h not in self.router.hosts
-                if gone or now - at >= self.retry_s:
+                if gone:  # left the fleet: its videos go to the next hosts of their rankings
                     del v.flight[hr]
                     self.flight.pop(hr, None)
-                    if gone:  # left the fleet: its videos go to the next hosts of their rankings
-                        v.host = None if v.host == h else v.host
-                        self.ask(video, ords, now)
-                    else:
-                        self.send(video, ords, h, now)
+                    v.host = None if v.host == h else v.host
+                    self.ask(video, ords, now)
+                elif now - at >= self.retry_s:  # asked again before the request it replaces is
+                    self.send(video, ords, h, now)  # dropped: the host's silence counts on
+                    del v.flight[hr]
+                    self.flight.pop(hr, None)
 
     def receive(self, ep: str, msg, frames, now: float) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,

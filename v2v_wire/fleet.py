@@ -262,6 +262,10 @@ class Router:
         self.ping_s = hedge_s / PINGS_PER_HEDGE
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
+        #: host -> requests this reader awaits an answer to from it: its pass's in flight, which
+        #: the pass counts (a request outlives the queue :meth:`move_off` and :meth:`moved` take
+        #: off a host: a move asked of a host that died is awaited there still).
+        self.awaited: Mapping[str, int] = {}
         self._load = 0
         self._routed = [0, 0]  # videos routed, their samples summed: :meth:`per_video`
         for h in hosts:
@@ -311,9 +315,20 @@ class Router:
         return rank_hosts(video, list(self.hosts), self.weights())[0]
 
     def suspect(self, host: str, now: float) -> bool:
-        """``host`` has work queued and answered nothing for ``hedge_s``."""
+        """``host`` has work queued, or a request this reader awaits (:attr:`awaited`), and
+        answered nothing for ``hedge_s``."""
         s = self.hosts[host]
-        return bool(s.queued) and now - s.heard >= self.hedge_s
+        return self._waits_on(host, s) and now - s.heard >= self.hedge_s
+
+    def _waits_on(self, host: str, s: _Host) -> bool:
+        return bool(s.queued or self.awaited.get(host))
+
+    def awaits(self, host: str, now: float) -> None:
+        """This reader sends ``host`` a request at ``now`` (before its pass counts it in
+        :attr:`awaited`): a host it waited on for nothing counts its silence from now."""
+        s = self.hosts.get(host)
+        if s is not None and not self._waits_on(host, s):
+            s.heard = max(s.heard, now)
 
     # ------------------------------------------------------------------ routing
     def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = (),
@@ -565,7 +580,7 @@ class Router:
         and so is never taken for silent (:meth:`suspect`)."""
         out = []
         for h, s in self.hosts.items():
-            if (s.rate is None or s.queued and now - s.heard >= self.ping_s) and now - s.pinged >= self.ping_s:
+            if (s.rate is None or self._waits_on(h, s) and now - s.heard >= self.ping_s) and now - s.pinged >= self.ping_s:
                 s.pinged = now
                 out.append(h)
         return out
@@ -589,7 +604,7 @@ class Router:
         s = self.hosts.get(host)
         if s is None:
             return
-        if not s.queued:
+        if not self._waits_on(host, s):
             s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
         self._queue(s, (epoch, video), samples)
         if position is not None:
@@ -634,14 +649,17 @@ class Router:
         return pick
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float,
-               refused: Optional[Mapping[str, Collection[str]]] = None) -> List[Tuple[int, str, str]]:
-        """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts
-        that answered nothing for ``hedge_s``: each asked of the next host of its ranking too, not
-        one that refused a make of it (``refused``: video -> hosts). Returns ``(epoch, video,
-        host)`` for each new copy."""
+               refused: Optional[Mapping[str, Collection[str]]] = None,
+               awaited: Optional[Mapping[str, Collection[str]]] = None) -> List[Tuple[int, str, str]]:
+        """Of the videos a reader waits on (``(epoch, video, samples)``), those it awaits only of
+        hosts that answered nothing for ``hedge_s`` (``awaited``: video -> the hosts its requests
+        in flight went to; default: the hosts this router asked): each asked of the next host of
+        its ranking too, not one that refused a make of it (``refused``: video -> hosts). Returns
+        ``(epoch, video, host)`` for each new copy."""
         out = []
         for epoch, video, samples in waiting:
-            asked = [h for h in self.asked.get((epoch, video), ()) if h in self.hosts]
+            hosts = self.asked.get((epoch, video), ()) if awaited is None else awaited.get(video, ())
+            asked = [h for h in hosts if h in self.hosts]
             if asked and not all(self.suspect(h, now) for h in asked):
                 continue
             h = self.route(epoch, video, samples, now, exclude=[*asked, *(refused or {}).get(video, ())])
