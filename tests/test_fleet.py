@@ -674,6 +674,30 @@ def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_
     assert [(h, m.route) for h, m in sent[2:]] == [(other, None)]
 
 
+def test_videos_placed_at_a_host_the_pass_does_not_read_are_made_at_their_arbiter_and_the_host_named_once(caplog):
+    """Another reader placed videos at a host this pass does not read: each ``Moved`` there is
+    asked again of the arbiter, to be made there, and the host is named in one log line a pass,
+    not one a video."""
+    import logging
+
+    from v2v_wire.plan_messages import Moved
+
+    unread = "tcp://10.0.9.9:5555"
+    videos = VIDEOS[:3]
+    read, sent = _fleet_pass({v: 1 for v in videos}, HOSTS[:1], stop=3)
+    read.ask_window(0.0)
+    makes = list(sent)
+    assert len(makes) == 3
+    with caplog.at_level(logging.WARNING, logger="v2v.client"):
+        for h, m in makes:
+            read.receive(h, Moved(m.request, unread), [], 0.1)
+    again = sent[3:]
+    assert sorted(m.video for _, m in again) == sorted(videos) and {h for h, _ in again} == {HOSTS[0]}
+    assert all(m.route is None for _, m in again)  # made where asked: not placed again
+    named = [r.getMessage() for r in caplog.records if unread in r.getMessage()]
+    assert len(named) == 1 and "a host this reader does not read" in named[0], named
+
+
 def test_a_fleet_pass_asks_a_long_video_at_the_latest_position_its_decode_can_start():
     """A host works its makes by ``Make.position``. A video of 20 windows needed at position 100
     takes one of the fleet's 2 workers what the fleet reads in 40 positions, so it is asked at

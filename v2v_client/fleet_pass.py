@@ -189,6 +189,7 @@ class Pass:
         self.flight = Flights()  # (host, request) -> asked
         router.awaited = self.flight.hosts
         self.told: Set[str] = set()  # videos whose windows were asked for
+        self.unread: Set[str] = set()  # hosts an arbiter placed a video at that this pass does not ask: named once
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
@@ -546,8 +547,12 @@ class Pass:
             v.host = to
         if to == ep and not v.here:  # once a video a pass: its next makes ask the arbiter to make it
             v.here = True
-            if msg.host not in self.named:  # not named already
-                log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
+            if msg.host not in self.named and msg.host not in self.unread:  # each host named once a pass
+                self.unread.add(msg.host)
+                why = "silent" if msg.host in self.router.hosts and self.router.suspect(msg.host, now) else \
+                    "one that refused a make of it" if msg.host in v.refused else "a host this reader does not read"
+                log.warning("%s: placed %s at %s, %s: it and the others placed there are made at their arbiters "
+                            "for this pass", ep, video, msg.host, why)
         self.send(video, ordinals, to, now, here=True)
 
 
