@@ -317,8 +317,8 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     a video asked of it would be made later than its due (``Router.overdue``), the pass asks it
     again as a move to the host its rules pick (``Make.move``, ``route``), and follows the
     ``Moved`` answer there; each video it would make late is asked so, the first too (a host
-    keeps one it started)."""
-    from v2v_wire.plan_messages import Moved, PlanInfo
+    keeps one it started); a move whose answer is lost is asked again as a move."""
+    from v2v_wire.plan_messages import Make, Moved, PlanInfo
 
     slow, fast = HOSTS[:2]
     read, sent = _fleet_pass({"clips/a.mp4": 1, "clips/b.mp4": 1}, [slow], others=[fast], stop=2)
@@ -337,6 +337,10 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     (h, there), = sent[n:]
     assert (h, there.video, there.route, there.move) == (fast, second, None, False)
     assert read.videos[second].host == fast and not read.router.hosts[slow].queued
+    n = len(sent)
+    read.rescue(1.0 + read.retry_s)  # the first move's answer was lost: asked again, as a move
+    again = [(h, m) for h, m in sent[n:] if isinstance(m, Make) and m.video == first]
+    assert [(h, m.route, m.move) for h, m in again] == [(slow, fast, True)]
 
 
 def test_a_host_that_dies_before_it_answers_a_move_is_hedged_though_its_queue_moved_off_it():

@@ -190,6 +190,7 @@ class Pass:
         router.awaited = self.flight.hosts
         self.told: Set[str] = set()  # videos whose windows were asked for
         self.unread: Set[str] = set()  # hosts an arbiter placed a video at that this pass does not ask: named once
+        self.moves: Dict[Tuple[str, int], str] = {}  # (host, request) of a move -> the host it moves to: asked again as one
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
@@ -250,6 +251,8 @@ class Pass:
         self.outbox.append((host, Make(req, self.epoch, video, ordinals, self.outputs, self.identity, "none",
                                        self.start_by(video), route, move)))
         self.router.awaits(host, now)
+        if move and spill is not None:
+            self.moves[(host, req)] = spill
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -454,8 +457,9 @@ class Pass:
                     self.flight.pop(hr, None)
                     v.host = None if v.host == h else v.host
                     self.ask(video, ords, now)
-                elif now - at >= self.retry_s:  # asked again before the request it replaces is
-                    self.send(video, ords, h, now)  # dropped: the host's silence counts on
+                elif now - at >= self.retry_s:  # asked again (a move as a move) before the request it
+                    spill = self.moves.pop(hr, None)  # replaces is dropped: the host's silence counts on
+                    self.send(video, ords, h, now, spill=spill, move=spill is not None)
                     del v.flight[hr]
                     self.flight.pop(hr, None)
 
