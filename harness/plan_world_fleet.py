@@ -8,7 +8,7 @@ What a fleet's world does:
 * hosts join mid-epoch (their name appears where the readers resolve the fleet; a reader asks
   it what it serves and it joins at its answer), leave (killed: its scheduler, made samples and
   makes gone; its name goes after a lag, or, a third of the time, stays, as in a static list of
-  endpoints: hedges take over what it held; :data:`DOOMED` of the hosts die so as soon as they
+  endpoints: hedges take over what it held; :data:`DOOMED` of the hosts die so, as soon as they
   answer a make saying their first rate, which is when a reader moves what that rate makes late
   off them), stall (answer nothing for 10-80 s: hedges and copies
   of what the head waits on take over) and restart (a fresh ``PlanScheduler`` and pool, after a

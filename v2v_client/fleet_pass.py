@@ -502,6 +502,7 @@ class Pass:
         except ProtocolError as e:
             raise BrokenPeer(ep, f"rows of {video}: {e}") from None
         del self.flight[(ep, msg.request)]
+        self.moves.pop((ep, msg.request), None)  # a move the host kept (it had started the video)
         v = self.videos[video]
         v.flight.pop((ep, msg.request), None)
         if msg.windows is not None and video not in self.memory.windows:
@@ -538,6 +539,7 @@ class Pass:
         asked there (at ``ep`` again where this reader does not read that host: a host it has not
         joined, or one suspect)."""
         what = self.flight.pop((ep, msg.request), None)
+        self.moves.pop((ep, msg.request), None)
         self.router.heard(ep, now)
         if what is None:
             return
