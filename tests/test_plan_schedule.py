@@ -426,6 +426,23 @@ def test_the_readers_of_one_job_find_what_the_others_read_not_made_again(readers
         assert max(made) <= 1.02, (batch, made)
 
 
+def test_a_job_resumed_in_new_processes_makes_nothing_again_for_the_head_it_left():
+    """A job resumed from its checkpoint in new processes leaves its old reader's head behind, a
+    slow one's, moving for a few of its intervals more: what the new readers were answered since
+    is read, however far behind them, and neither made ahead for the old head nor made again by a
+    decode (counted by the latest few answers a head had, the new job's positions past them were
+    made again for the old head: 1.06 made a sample read in the seeded world's seed 3670)."""
+    for readers in (1, 3):
+        host = _Host(videos=20, per=3, workers=3)
+        host.s = PlanScheduler(host.m, 0, 16, ("voxels",), lookahead=16, keep_samples=0)
+        for p in range(5):  # the old process reads a sample every 4 s, then is killed
+            host.read("old", 0, 1, p, p + 1)
+            for _ in range(12):
+                host.tick()
+        made = [_read_as_job(host, readers, 0, 1, start=5), _read_as_job(host, readers, 1, 1)]
+        assert max(made) <= 1.02, (readers, made)
+
+
 def test_a_plan_unfolding_keeps_what_its_next_positions_need():
     """No corpus index: the first fetch waits on the videos whose slots decide its positions, and
     several workers decode long ones at once. Their samples no position holds yet count where the

@@ -65,6 +65,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Hashable, Iterator, List, Mapping, Optional, Sequence, Set, Tuple
 
+import numpy as np
+
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.worker_messages import Task
@@ -99,9 +101,10 @@ HEADS_KEPT = 64
 #: :data:`HEAD_IDLE_S`: a sample only idle heads reach is one no reader needs soon.
 HEAD_IDLE_INTERVALS = 4
 HEAD_IDLE_S = 2.0
-#: Fetches answered a head keeps the ranges of (:meth:`Heads.read`): a reader's items ahead of
-#: the slowest reader of its job (prefetched, a step or two apart).
-ANSWERED_KEPT = 8
+#: Epochs whose positions' answer times are kept (:meth:`Heads.read`), the latest answered: as
+#: many as the plans kept, each array as long as its plan's furthest position answered (8 bytes a
+#: position, as the plan's own production index).
+ANSWERED_EPOCHS = PLANS_KEPT
 
 
 
@@ -181,7 +184,6 @@ class Head:
     stop: int
     at: float
     interval: float = 0.0
-    answered: List[Tuple[int, int, float]] = field(default_factory=list)  # its latest fetches answered: (start, stop, s)
     since: float = 0.0  # its first fetch (s)
 
 
@@ -193,6 +195,8 @@ class Heads:
 
     def __init__(self):
         self.heads: "OrderedDict[Tuple[Hashable, int], Head]" = OrderedDict()
+        # epoch -> each position's latest answer (s; -inf: never), the ANSWERED_EPOCHS latest answered
+        self.answers: "OrderedDict[int, np.ndarray]" = OrderedDict()
 
     def fetched(self, client: Hashable, epoch: int, stop: int, now: float) -> None:
         """``client`` asked positions up to ``stop`` of ``epoch`` at ``now`` (s)."""
@@ -213,24 +217,38 @@ class Heads:
             del self.heads[k]
 
     def answered(self, client: Hashable, epoch: int, now: float, start: int = 0, stop: int = 0) -> None:
-        """A fetch of ``client`` in ``epoch`` was answered at ``now`` with positions ``start ..
-        stop - 1``: its idle time counts from here, and the range is noted (its latest
-        :data:`ANSWERED_KEPT`)."""
+        """A fetch of ``client`` in ``epoch`` was answered at ``now`` (s) with positions ``start ..
+        stop - 1``: its idle time counts from here, and each position's answer time is noted
+        (:meth:`read`)."""
         h = self.heads.get((client, epoch))
         if h is not None:
             h.at = max(h.at, now)
-            if stop > start:
-                h.answered = h.answered[-(ANSWERED_KEPT - 1):] + [(start, stop, now)]
+        if stop > start:
+            times = self.answers.pop(epoch, None)
+            if times is None or len(times) < stop:
+                grown = np.full(max(stop, 2 * (0 if times is None else len(times))), -np.inf)
+                if times is not None:
+                    grown[:len(times)] = times
+                times = grown
+            times[start:stop] = now
+            self.answers[epoch] = times
+            while len(self.answers) > ANSWERED_EPOCHS:
+                self.answers.popitem(last=False)
 
-    def read(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[Tuple[int, int]]:
-        """The ranges of ``epoch`` answered lately to its readers: positions one reader of a job
-        was given, which the others never ask (each reads its own items) though they lie ahead
-        of their heads. Only those answered since the newest moving head's first fetch: the
-        readers of one job start together, so a head that appeared later is a new job's (one
-        started after another was cut off), which reads what the old one was given."""
-        live = self._moving(epoch, now, waiting)
-        newest = max((h.since for h in live), default=float("-inf"))
-        return [(a, b) for (c, e), h in self.heads.items() if e == epoch for a, b, at in h.answered if at >= newest]
+    def read(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> Callable[[int], bool]:
+        """Whether a position of ``epoch`` was read by the job reading now: one reader of a job
+        was given it, which the others never ask (each reads its own items) though it lies ahead
+        of their heads. A position counts when it was answered since the newest moving head's
+        first fetch (any answer where no head moves): the readers of one job start together, so
+        a head that appeared later is a new job's (one started after another was cut off, or a
+        job resumed in new processes), which reads what the old one was given. Every position of
+        the epoch counts, however long ago its reader passed it: a head left behind (an old job's,
+        idle only after a few of its intervals) must not make ahead what the new job read."""
+        times = self.answers.get(epoch)
+        if times is None:
+            return lambda p: False
+        newest = max((h.since for h in self._moving(epoch, now, waiting)), default=float("-inf"))
+        return lambda p: 0 <= p < len(times) and times[p] >= newest
 
     def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
         """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
@@ -629,8 +647,8 @@ class PlanScheduler:
         waiting = {f.client for f in self.pending}
         plan, heads, n = self.plans.get(epoch), self.heads.moving(epoch, now, waiting), self.slots.samples.get(video)
         read = self.heads.read(epoch, now, waiting)
-        if plan is None or not (heads or read) or not n or any(o.epoch == epoch and o.video == video
-                                                               for o in self.orders.waiting):
+        if plan is None or not (heads or epoch in self.heads.answers) or not n or \
+                any(o.epoch == epoch and o.video == video for o in self.orders.waiting):
             return set()
         behind = min(heads, default=0)
         asked = [(f.start, f.stop) for f in self.pending if f.epoch == epoch]
@@ -638,7 +656,7 @@ class PlanScheduler:
         for i in range(n):
             key = SampleKey.at(video, i, self.manifest.crops_per_window)
             p = plan.position(key)
-            if p is not None and (p < behind or any(a <= p < b for a, b in read)) and \
+            if p is not None and (p < behind or read(p)) and \
                     not any(a <= p < b for a, b in asked):
                 out.add((key.window, key.crop))
         return out
@@ -791,8 +809,8 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     read = {e: s.heads.read(e, now, waiting) for e in heads}
 
     def was_read(e: int, key: Optional[SampleKey]) -> bool:  # answered to a reader still reading (Heads.read)
-        p = None if key is None or not read.get(e) else s.plans[e].position(key)
-        return p is not None and any(a <= p < b for a, b in read[e])
+        p = None if key is None or e not in read else s.plans[e].position(key)
+        return p is not None and read[e](p)
 
     for epoch, stop in sorted((e, h) for e, hs in heads.items() for h in set(hs)):
         if budget <= 0:  # before positions_after, which may build the next epoch's plan
