@@ -30,7 +30,8 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   need them last (Belady's rule): first those of epochs no fetch named for :data:`IDLE_S` (a job
   that left), then those no moving head reaches (behind every reader's last fetch, or reached by
   idle heads only: a job cut off), then the furthest from the nearest moving head before them
-  (:class:`Heads`). A decode makes a whole video, whose samples the shuffle buffer spreads over
+  (:class:`Heads`; where every head of an epoch is idle and none of the epoch before reaches it,
+  its furthest fetch: a job paused, which reads on from there). A decode makes a whole video, whose samples the shuffle buffer spreads over
   positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
   video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
@@ -101,6 +102,10 @@ HEADS_KEPT = 64
 #: :data:`HEAD_IDLE_S`: a sample only idle heads reach is one no reader needs soon.
 HEAD_IDLE_INTERVALS = 4
 HEAD_IDLE_S = 2.0
+#: Seconds within which the readers of one job make their first fetch of an epoch (its ranks'
+#: DataLoader workers start together); a job started after another was cut off, or resumed in new
+#: processes, starts later than that after the old one's readers did (:meth:`Heads.read`).
+JOB_START_S = 5.0
 #: Epochs whose positions' answer times are kept (:meth:`Heads.read`), the latest answered: as
 #: many as the plans kept, each array as long as its plan's furthest position answered (8 bytes a
 #: position, as the plan's own production index).
@@ -185,6 +190,7 @@ class Head:
     at: float
     interval: float = 0.0
     since: float = 0.0  # its first fetch (s)
+    first: int = 0  # its first fetch's start: a reader reads on from there, never before it
 
 
 class Heads:
@@ -198,11 +204,11 @@ class Heads:
         # epoch -> each position's latest answer (s; -inf: never), the ANSWERED_EPOCHS latest answered
         self.answers: "OrderedDict[int, np.ndarray]" = OrderedDict()
 
-    def fetched(self, client: Hashable, epoch: int, stop: int, now: float) -> None:
-        """``client`` asked positions up to ``stop`` of ``epoch`` at ``now`` (s)."""
+    def fetched(self, client: Hashable, epoch: int, stop: int, now: float, start: int = 0) -> None:
+        """``client`` asked positions ``start`` up to ``stop`` of ``epoch`` at ``now`` (s)."""
         h = self.heads.pop((client, epoch), None)
         if h is None:
-            h = Head(stop, now, since=now)
+            h = Head(stop, now, since=now, first=start)
         else:
             gap = max(0.0, now - h.at)
             # the furthest stop: a reader's fetches in flight, and one asked again, end anywhere behind it
@@ -238,17 +244,22 @@ class Heads:
     def read(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> Callable[[int], bool]:
         """Whether a position of ``epoch`` was read by the job reading now: one reader of a job
         was given it, which the others never ask (each reads its own items) though it lies ahead
-        of their heads. A position counts when it was answered since the newest moving head's
-        first fetch (any answer where no head moves): the readers of one job start together, so
+        of their heads. The readers of one job start together (within :data:`JOB_START_S`), so
         a head that appeared later is a new job's (one started after another was cut off, or a
-        job resumed in new processes), which reads what the old one was given. Every position of
-        the epoch counts, however long ago its reader passed it: a head left behind (an old job's,
-        idle only after a few of its intervals) must not make ahead what the new job read."""
-        times = self.answers.get(epoch)
+        job resumed in new processes), which reads on from its readers' first fetches: a
+        position counts when it was answered since the newest job's first fetch, or at all
+        where it lies before that job's first position (the new job never reads it); where no
+        head moves (its readers paused), any answered. Every position of the epoch counts,
+        however long ago its reader passed it: a head left behind (an old job's, idle only after
+        a few of its intervals) must not make ahead what the new job read, nor what the old job
+        read before the new one's start."""
+        times, live = self.answers.get(epoch), self._moving(epoch, now, waiting)
         if times is None:
             return lambda p: False
-        newest = max((h.since for h in self._moving(epoch, now, waiting)), default=float("-inf"))
-        return lambda p: 0 <= p < len(times) and times[p] >= newest
+        newest = max((h.since for h in live), default=-np.inf)
+        job = [h for h in live if h.since >= newest - JOB_START_S]  # the newest job's readers
+        since, first = min((h.since for h in job), default=-np.inf), min((h.first for h in job), default=0)
+        return lambda p: 0 <= p < len(times) and times[p] > -np.inf and (times[p] >= since or p < first)
 
     def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
         """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
@@ -503,7 +514,7 @@ class PlanScheduler:
         self.plan(epoch)
         self.pending.append(Pending(client, request, epoch, start, stop))
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
-        self.heads.fetched(client, epoch, stop, now)
+        self.heads.fetched(client, epoch, stop, now, start)
 
     def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
              now: float, outputs: Optional[Sequence[str]] = None, position: int = 0) -> None:
@@ -639,7 +650,7 @@ class PlanScheduler:
 
     def _read_by_all(self, epoch: int, video: str, now: float) -> Set[Tuple[int, int]]:
         """(window, crop) of ``video``'s samples in ``epoch`` at decided positions behind every
-        moving head of the epoch (:class:`Heads`) or answered lately to a reader (:meth:`Heads.read`:
+        moving head of the epoch (:class:`Heads`) or answered to a reader (:meth:`Heads.read`:
         the other readers of its job never ask them), named by no pending fetch, where no make
         waits on the video: read already, so a decode asked again for a sample dropped before its
         fetch (or asked again by a reader going back), or for the next items of a slow reader,
@@ -900,6 +911,12 @@ def trim(s: "PlanScheduler", now: float) -> None:
         if heads.get(e) and not heads.get(e + 1) and e + 1 in s.plans and s.plans[e].complete:
             heads[e + 1] = [h - len(s.plans[e]) for h in heads[e]]
             live.add(e + 1)
+    # an epoch read by readers all paused (an evaluation, a checkpoint): their furthest fetch, as
+    # needed() makes ahead of it (taken as unreached, the stock it made ahead went oldest first,
+    # and was made again while the job was paused)
+    for e in live:
+        if not heads.get(e) and e in s.fetched_to:
+            heads[e] = [s.fetched_to[e]]
     asked = set(named)
     named |= s.orders.named(list(s.store), now)
     undecided = {}  # samples of a plan still unfolding past its decided positions -> where it places them, about
