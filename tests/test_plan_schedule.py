@@ -92,6 +92,21 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     assert scheduler.task_for("w", 2.0) is None
 
 
+
+def test_a_fetch_far_past_the_epochs_end_is_padding_and_the_server_serves_on():
+    """A careless or hostile reader asks positions far past the epoch's end (the wire takes any
+    start): they are padding rows, and the answer times the server keeps reach only the plan's
+    positions (kept to the fetch's stop, they asked for 8 TB and the server died), so it serves on."""
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
+    far = 2 ** 40
+    scheduler.fetch("c", 1, 0, far, far + 4, 0.0)
+    (f, rows), = scheduler.answer(1.0)
+    assert f.start == far and [r.sample for r in rows] == [None] * 4 and {r.key for r in rows} == {None}
+    scheduler.fetch("c", 2, 0, 0, 1, 2.0)
+    t = scheduler.task_for("w", 2.0)
+    scheduler.sample("w", t.task, SampleKey("a.mp4", 0), 3.0, lambda: "s0")
+    assert [[r.sample for r in rows] for _, rows in scheduler.answer(3.0)] == [["s0"]]
+
 def test_a_window_the_worker_reports_failed_is_a_padding_row_with_its_reason():
     # the wire's Done keys a failed window by its digits
     scheduler = PlanScheduler(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)

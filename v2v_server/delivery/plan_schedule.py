@@ -580,8 +580,9 @@ class PlanScheduler:
             out.append((f, rows))
             if isinstance(f, Order):
                 self.orders.answered(f, now)
-            else:
-                self.heads.answered(f.client, f.epoch, now, f.start, f.stop)
+            else:  # positions past the plan's decided ones hold no sample: a fetch far past the end costs nothing
+                known = self.plans[f.epoch].known if f.epoch in self.plans else f.start
+                self.heads.answered(f.client, f.epoch, now, f.start, max(f.start, min(f.stop, known)))
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
