@@ -31,8 +31,8 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   that left), then those no moving head reaches (behind every reader's last fetch, or reached by
   idle heads only: a job cut off), then the furthest from the nearest moving head before them
   (:class:`Heads`; where every head of an epoch is idle and none of the epoch before reaches it,
-  its furthest fetch: a job paused, which reads on from there). A decode makes a whole video, whose samples the shuffle buffer spreads over
-  positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
+  its furthest fetch: a job paused, which reads on from there). A decode makes a whole video,
+  whose samples the shuffle buffer spreads over positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
   video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
   after it) is kept beside that bound, up to as many samples again: it is read when the new
@@ -184,7 +184,8 @@ class Run:
 @dataclass
 class Head:
     """Where one reader reads an epoch: the furthest stop it asked, when it last asked or was
-    answered (s), and the mean seconds between its fetches (0 until its second)."""
+    answered (s), the mean seconds between its fetches (0 until its second), and when (s) and
+    where (the start of) its first fetch was."""
 
     stop: int
     at: float
