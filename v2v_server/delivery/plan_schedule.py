@@ -32,8 +32,8 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   idle heads only: a job cut off), then the furthest from the nearest moving head before them
   (:class:`Heads`; where every head of an epoch is idle and none of the epoch before reaches it,
   its furthest fetch: a job paused, which reads on from there). A decode makes a whole video,
-  whose samples the shuffle buffer spreads over positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
-  video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
+  whose samples the shuffle buffer spreads over positions far apart: dropping the oldest would
+  drop what the plan reaches next, and decode its video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
   ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
   after it) is kept beside that bound, up to as many samples again: it is read when the new
   job's head reaches it, where dropping it would decode its videos twice in the epoch. A sample
