@@ -95,11 +95,14 @@ class ReaderMemory:
 class Flights(dict):
     """``(host, request id) -> (video, ordinals)``: a pass's makes in flight, counted by host in
     :attr:`hosts` (host -> requests; the ``Router``'s ``awaited``, so a host it awaits a request
-    of is pinged and, silent, hedged whatever its queue holds). Taken out by ``del`` and ``pop``."""
+    of is pinged and, silent, hedged whatever its queue holds); and in :attr:`moves`, the host
+    each move in flight moves its video to (asked again after ``retry_s``, a move is asked as one).
+    Taken out by ``del`` and ``pop``, with its move."""
 
     def __init__(self):
         super().__init__()
         self.hosts: Dict[str, int] = {}
+        self.moves: Dict[Tuple[str, int], str] = {}
 
     def __setitem__(self, key: Tuple[str, int], value) -> None:
         if key not in self:
@@ -109,10 +112,12 @@ class Flights(dict):
     def __delitem__(self, key: Tuple[str, int]) -> None:
         super().__delitem__(key)
         self._less(key[0])
+        self.moves.pop(key, None)
 
     def pop(self, key: Tuple[str, int], *default):
         if key in self:
             self._less(key[0])
+            self.moves.pop(key, None)
         return super().pop(key, *default)
 
     def _less(self, host: str) -> None:
@@ -190,7 +195,6 @@ class Pass:
         router.awaited = self.flight.hosts
         self.told: Set[str] = set()  # videos whose windows were asked for
         self.unread: Set[str] = set()  # hosts an arbiter placed a video at that this pass does not ask: named once
-        self.moves: Dict[Tuple[str, int], str] = {}  # (host, request) of a move -> the host it moves to: asked again as one
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
@@ -251,9 +255,9 @@ class Pass:
         self.outbox.append((host, Make(req, self.epoch, video, ordinals, self.outputs, self.identity, "none",
                                        self.start_by(video), route, move)))
         self.router.awaits(host, now)
-        if move and spill is not None:
-            self.moves[(host, req)] = spill
         self.flight[(host, req)] = (video, ordinals)
+        if move and spill is not None:
+            self.flight.moves[(host, req)] = spill
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
             v.asked[o] = req
@@ -458,7 +462,7 @@ class Pass:
                     v.host = None if v.host == h else v.host
                     self.ask(video, ords, now)
                 elif now - at >= self.retry_s:  # asked again (a move as a move) before the request it
-                    spill = self.moves.pop(hr, None)  # replaces is dropped: the host's silence counts on
+                    spill = self.flight.moves.get(hr)  # replaces is dropped: the host's silence counts on
                     self.send(video, ords, h, now, spill=spill, move=spill is not None)
                     del v.flight[hr]
                     self.flight.pop(hr, None)
@@ -502,7 +506,6 @@ class Pass:
         except ProtocolError as e:
             raise BrokenPeer(ep, f"rows of {video}: {e}") from None
         del self.flight[(ep, msg.request)]
-        self.moves.pop((ep, msg.request), None)  # a move the host kept (it had started the video)
         v = self.videos[video]
         v.flight.pop((ep, msg.request), None)
         if msg.windows is not None and video not in self.memory.windows:
@@ -539,7 +542,6 @@ class Pass:
         asked there (at ``ep`` again where this reader does not read that host: a host it has not
         joined, or one suspect)."""
         what = self.flight.pop((ep, msg.request), None)
-        self.moves.pop((ep, msg.request), None)
         self.router.heard(ep, now)
         if what is None:
             return
