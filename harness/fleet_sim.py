@@ -454,8 +454,11 @@ class _World:
         whole = {c: self.lay.needs[c][1] for c in queued}
         for c in r.overdue(h, 0, at, due, whole):
             pick = r.move_off(h, 0, c, needs[c][1], at, due[c], self.start_by(rank, c), whole[c])
-            if pick is None or (k, c) in self.running or c in self.made_on[k] or self.stalls.silent(k, self.now):
-                continue  # started there (or the move unanswered yet): made there, where the rank waits on it
+            if pick is None:
+                continue
+            if (k, c) in self.running or c in self.made_on[k] or self.stalls.silent(k, self.now):
+                r.moved(0, c, pick, h, at)  # started there (or the move unanswered yet): the rank awaits it there
+                continue
             to = self.index[pick]
             self.placed[k][c] = to
             for other in sorted(self._unqueue(k, c)):  # each answered Moved: asked of the pick
@@ -487,7 +490,9 @@ class _World:
                     self.heard_rate(rank, k)
             silent = {h for h in r.hosts if r.suspect(h, at)}
             waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
-            for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at):
+            due = {c: max(0, needs[c][0] - self.read) / r.capacity() for _, c, _ in waiting}  # as Pass.due
+            for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at, due=due,
+                                    video_samples={c: self.lay.needs[c][1] for _, c, _ in waiting}):
                 self.ask(rank, c, self.index[h])
             if waited < STEAL_S:
                 continue

@@ -125,8 +125,8 @@ class ReaderFleet(Fleet):
         self.resolved = now
         hedges = self.router.hedges
 
-        def counted(waiting, at, refused=None, awaited=None):
-            out = hedges(waiting, at, refused, awaited)
+        def counted(waiting, at, *args, **kwargs):
+            out = hedges(waiting, at, *args, **kwargs)
             net.out.hedged += len(out)
             return out
         self.router.hedges = counted

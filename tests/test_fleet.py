@@ -396,6 +396,26 @@ def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked
     assert not r.suspect(owner, 12.0)
 
 
+def test_a_silent_hosts_video_needed_later_stays_with_it_until_it_comes_due():
+    v = VIDEOS[0]
+    owner, nxt = rank_hosts(v, HOSTS[:3])[:2]
+
+    def asked_of_owner():
+        r = Router(HOSTS[:3], hedge_s=10.0, workers=4)
+        assert r.route(0, v, 2, 0.0) == owner
+        return r
+    decode = asked_of_owner().decode_s(6)  # a worker's decode of its 6 samples: 6 x 12 workers / 3 samples/s
+    assert decode == 24.0
+    hedge = [(0, v, nxt)]
+    assert asked_of_owner().hedges([(0, v, 2)], 10.0, due={v: 10.0 + decode + 5.0}, video_samples={v: 6}) == []
+    assert asked_of_owner().hedges([(0, v, 2)], 10.0, due={v: 10.0 + decode}, video_samples={v: 6}) == hedge
+    assert asked_of_owner().hedges([(0, v, 2)], 10.0, due={v: 10.0 + 2 / 3 * 12}) == hedge  # its 2 samples' decode
+    assert asked_of_owner().hedges([(0, v, 2)], 10.0, due={v: None}) == hedge  # a position not known yet: now
+    r = asked_of_owner()
+    assert r.hedges([(0, v, 2)], 10.0, due={v: 40.0}, video_samples={v: 6}) == []
+    assert r.hedges([(0, v, 2)], 30.0, due={v: 20.0}, video_samples={v: 6}) == hedge  # still silent as it came due
+
+
 def test_a_host_that_leaves_hands_back_what_only_it_was_asked():
     r = Router(HOSTS[:2])
     asked = {v: r.route(0, v, 1, 0.0) for v in VIDEOS[:50]}

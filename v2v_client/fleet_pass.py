@@ -446,8 +446,11 @@ class Pass:
             self.ask(video, ords, now)
         waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
         awaited = {video: {h for h, _, _ in v.flight.values()} for video, v in self.videos.items() if v.flight}
+        silent = {h for h in self.router.hosts if self.router.suspect(h, now)}
+        due = {video: self.due(self.videos[video].position) for video, hosts in awaited.items() if hosts & silent}
         for _, video, host in self.router.hedges(waiting, now, {video: v.refused for video, v in self.videos.items()
-                                                                 if v.refused}, awaited):
+                                                                 if v.refused}, awaited, due,
+                                                 {video: self.video_samples(video) for video in due}):
             v = self.videos[video]
             v.host = host
             for h, ords, _ in list(v.flight.values()):

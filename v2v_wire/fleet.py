@@ -536,6 +536,12 @@ class Router:
         rate = s.rate or self.mean_rate() or 1.0
         return (first + others + (video_samples or samples) * s.workers) / rate
 
+    def decode_s(self, video_samples: int) -> float:
+        """Seconds one worker of a mean host takes to decode a video of ``video_samples`` samples:
+        the fleet's rate (:meth:`capacity`) over its workers."""
+        workers = sum(s.workers for s in self.hosts.values())
+        return video_samples * workers / self.capacity() if workers else 0.0
+
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
         known = [s.rate for s in self.hosts.values() if s.rate]
@@ -650,17 +656,30 @@ class Router:
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float,
                refused: Optional[Mapping[str, Collection[str]]] = None,
-               awaited: Optional[Mapping[str, Collection[str]]] = None) -> List[Tuple[int, str, str]]:
+               awaited: Optional[Mapping[str, Collection[str]]] = None,
+               due: Optional[Mapping[str, Optional[float]]] = None,
+               video_samples: Optional[Mapping[str, int]] = None) -> List[Tuple[int, str, str]]:
         """Of the videos a reader waits on (``(epoch, video, samples)``), those it awaits only of
         hosts that answered nothing for ``hedge_s`` (``awaited``: video -> the hosts its requests
-        in flight went to; default: the hosts this router asked): each asked of the next host of
-        its ranking too, not one that refused a make of it (``refused``: video -> hosts). Returns
-        ``(epoch, video, host)`` for each new copy."""
+        in flight went to; default: the hosts this router asked) and needs soon: each asked of
+        the next host of its ranking too, not one that refused a make of it (``refused``: video
+        -> hosts). ``due``: video -> seconds until the reader's head needs it (missing or None:
+        now); a video due later than ``hedge_s`` and a worker's decode of it (:meth:`decode_s`,
+        ``video_samples``: its whole decode, default ``samples``) stays with its silent host,
+        which may come back (a paused process) and make it in time, until it comes that near:
+        hedging a silent host's whole queue at once decodes all of it twice when the host comes
+        back (128 simulated hosts stalling 10 s every 300 s on average, sigma 0.2, seed 0: 32
+        readers 1.040 -> 1.031 decodes a clip and 0.855 -> 0.889 of the hosts' capacity over
+        the whole epoch, one reader 0.924 -> 0.945). Returns ``(epoch, video, host)`` for each
+        new copy."""
         out = []
         for epoch, video, samples in waiting:
             hosts = self.asked.get((epoch, video), ()) if awaited is None else awaited.get(video, ())
             asked = [h for h in hosts if h in self.hosts]
             if asked and not all(self.suspect(h, now) for h in asked):
+                continue
+            d = None if due is None else due.get(video)
+            if d is not None and d > self.hedge_s + self.decode_s((video_samples or {}).get(video, samples)):
                 continue
             h = self.route(epoch, video, samples, now, exclude=[*asked, *(refused or {}).get(video, ())])
             if h is not None:
