@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=5)
     args = p.parse_args(argv)
     root = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos"
-    print(f"| clip | codes + crop, ms/frame | + expand(crop) | ratio | decode_luma + crop | ratio |")
+    print("| clip | codes + crop, ms/frame | + expand(crop) | ratio | decode_luma + crop | ratio |")
     print("|---|---|---|---|---|---|")
     for name in CLIPS:
         best = {m: float("inf") for m in ("codes", "expand", "luma")}

@@ -269,7 +269,7 @@ def _kept_rows_section(r: dict) -> List[str]:
                 f"{row['scale_ms'] / row['scale_whole_ms']:.2f}x | {row['decode_scaled_whole_fps_cpu']:,.0f} | "
                 f"{row['decode_scaled_fps_cpu']:,.0f} | "
                 f"{row['decode_scaled_fps_cpu'] / row['decode_scaled_whole_fps_cpu']:.2f}x |")
-        lines += ["", f"With `keep_top_fraction` 1.0 (corpora without WebVid's watermark) every row is kept and "
+        lines += ["", "With `keep_top_fraction` 1.0 (corpora without WebVid's watermark) every row is kept and "
                   "both ways do the same work.", ""]
     return lines
 

@@ -24,7 +24,6 @@ import msgpack
 import numpy as np
 import torch
 
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.sources.local import LocalSource

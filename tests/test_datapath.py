@@ -51,7 +51,6 @@ def test_voxels_widen_to_the_batch_and_narrow_again_to_what_holds_them():
 
 
 def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
-    from v2v_server.ops.config import ServeConfig
     from v2v_server.flow.estimate import to_float16
     from v2v_server.service.worker import wire_arrays
 

@@ -22,7 +22,7 @@ def test_demo_serves_bundled_clips_and_stops(tmp_path, capsys):
     said = "\n".join(printed[-4:-1])
     assert said.startswith("read 2 batches (3 samples, 3 different) in ") and "samples/s" in said, said
     assert "the demo trains nothing, so it waited for each batch" in said and "would not wait at all" in said
-    assert f"The batches came from epoch" in said and "an epoch is one pass over every window" in said
+    assert "The batches came from epoch" in said and "an epoch is one pass over every window" in said
     # one epoch of the bundled clips is 3 samples (batches of 2, then 1)
     assert report["batches"] == 2 and report["samples"] == report["unique_samples"] == 3
     # the server thread (and with it its worker pool) is gone once main returns

@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import pytest
 
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.make import video_samples

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from v2v_server.flow import estimate as flow_mod
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.flow.estimate import FlowEstimator, dis_flow
 from v2v_server.luma import to_uint8

@@ -17,7 +17,6 @@ from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
 from tests.cached import Cached, cached
 from tests.test_frames import write_clip
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.make import video_samples

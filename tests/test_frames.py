@@ -158,7 +158,6 @@ def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     """A 10-bit clip reaches the V2V core as uint16 0..65535; its frames output is 8-bit full range."""
     from v2v_server.samples import make as samples
     from v2v_server.sources.local import LocalSource
-    from v2v_server.ops.config import ServeConfig
 
     write_clip(tmp_path / "deep.mkv", pattern(), n=6, pix_fmt="yuv420p10le")
     seen = []

@@ -151,7 +151,7 @@ def test_a_line_that_is_not_utf8_or_holds_a_nul_is_named_and_the_rest_served(cor
     assert rc == 0 and "2 usable video(s) of 2" in out and "2 other entries ignored" in out, out + err
     assert f"(line 2)                                         ignored      listed in {lst} line 2: not UTF-8 " \
            r"(bytes \xe9): save the list as UTF-8" in out
-    assert f"x\\x00y.mp4" in out and f"listed in {lst} line 3: the path holds a NUL byte" in out
+    assert "x\\x00y.mp4" in out and f"listed in {lst} line 3: the path holds a NUL byte" in out
 
 
 def test_bad_csv_lines_are_named_by_line_and_the_rest_served(corpus):
@@ -323,7 +323,7 @@ def test_a_cell_holding_a_newline_is_named_on_one_line(corpus, capsys):
     rc, out, _ = _check(capsys, corpus, "--video-list", str(table))
     assert rc == 0 and "1 usable video(s) of 1" in out and "1 other entry ignored" in out
     assert len(out.splitlines()) == 4  # header, a.mp4, the refused row, the summary
-    assert f"forged.mp4\\nWARNING all good.mp4" in out and f"listed in {table} but missing from {corpus}" in out
+    assert "forged.mp4\\nWARNING all good.mp4" in out and f"listed in {table} but missing from {corpus}" in out
 
 
 @pytest.mark.parametrize("name, said", [

@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 
 from harness import motion_clips as mc
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.check import check_video
 from v2v_server.sources.local import LocalSource

@@ -8,11 +8,9 @@ import hashlib
 import socket
 import threading
 
-import numpy as np
-import pytest
 import zmq
 
-from harness.serve import ServeProcess, free_port
+from harness.serve import ServeProcess
 from v2v_client import V2VStreamDataset
 from v2v_wire.plan_messages import Fetch, PlanAsk, plan_server_message
 from v2v_wire.protocol import pack, unpack

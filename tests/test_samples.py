@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from v2v_server.samples import make as samples_mod
-from v2v_server.ops.config import ServeConfig, load_config
+from v2v_server.ops.config import load_config
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
 from v2v_server.samples.make import pause_offsets, sample_rng, video_samples

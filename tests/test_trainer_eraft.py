@@ -20,7 +20,7 @@ from trainer.core import Trainer, build_optimizer
 from trainer.data import batch_to_device
 from trainer.models.eraft import forward_interpolate, min_side
 from trainer.evaluate import evaluate_eraft
-from trainer.tasks import get_task, stream_outputs
+from trainer.tasks import stream_outputs
 from trainer.zoo import build_model
 from tests.test_trainer_raft import StandInRaft, stand_in_torchvision  # noqa: F401 (a fixture)
 

@@ -13,7 +13,7 @@ import torch
 from tests.trainer_fixtures import FakeV2VStream
 from trainer.config import default_config, load_config, merge
 from trainer.core import Trainer, build_optimizer, set_lr
-from trainer.models.etnet import ETNet, sinusoid_table
+from trainer.models.etnet import sinusoid_table
 from trainer.models.hypere2vid import fourier_bessel_bases
 from trainer.zoo import build_model
 from trainer.tasks import curriculum_beta, get_task

@@ -48,7 +48,7 @@ from v2v_wire.plan import video_order
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
-from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
+from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
