@@ -490,7 +490,8 @@ class _World:
                     self.heard_rate(rank, k)
             silent = {h for h in r.hosts if r.suspect(h, at)}
             waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
-            due = {c: max(0, needs[c][0] - self.read) / r.capacity() for _, c, _ in waiting}  # as Pass.due
+            capacity = r.capacity()
+            due = {c: max(0, needs[c][0] - self.read) / capacity for _, c, _ in waiting}  # as Pass.due
             for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at, due=due,
                                     video_samples={c: self.lay.needs[c][1] for _, c, _ in waiting}):
                 self.ask(rank, c, self.index[h])

@@ -92,7 +92,6 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     assert scheduler.task_for("w", 2.0) is None
 
 
-
 def test_a_fetch_far_past_the_epochs_end_is_padding_and_the_server_serves_on():
     """A careless or hostile reader asks positions far past the epoch's end (the wire takes any
     start): they are padding rows, and the answer times the server keeps reach only the plan's
@@ -106,6 +105,7 @@ def test_a_fetch_far_past_the_epochs_end_is_padding_and_the_server_serves_on():
     t = scheduler.task_for("w", 2.0)
     scheduler.sample("w", t.task, SampleKey("a.mp4", 0), 3.0, lambda: "s0")
     assert [[r.sample for r in rows] for _, rows in scheduler.answer(3.0)] == [["s0"]]
+
 
 def test_a_window_the_worker_reports_failed_is_a_padding_row_with_its_reason():
     # the wire's Done keys a failed window by its digits

@@ -33,15 +33,16 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   (:class:`Heads`; where every head of an epoch is idle and none of the epoch before reaches it,
   its furthest fetch: a job paused, which reads on from there). A decode makes a whole video,
   whose samples the shuffle buffer spreads over positions far apart: dropping the oldest would
-  drop what the plan reaches next, and decode its video again. A fetch whose sample went makes it again. Stock a moving head reaches only past
-  ``lookahead`` and a shuffle buffer (made for a job cut off mid-epoch, ahead of the job started
-  after it) is kept beside that bound, up to as many samples again: it is read when the new
-  job's head reaches it, where dropping it would decode its videos twice in the epoch. A sample
-  a plan still unfolding has not placed yet counts at its place in the production order (the
-  shuffle buffer draws a sample about there: :func:`production_places`), and is kept where no
-  head moves (it is read next); those of the videos a pending fetch waits on to unfold the plan
-  are that fetch's. The next epoch's samples, before any reader fetched it (or where only a job
-  cut off did), lie past the end of the epoch the heads read: they reach them there.
+  drop what the plan reaches next, and decode its video again. A fetch whose sample went makes
+  it again. Stock a moving head reaches only past ``lookahead`` and a shuffle buffer (made for a
+  job cut off mid-epoch, ahead of the job started after it) is kept beside that bound, up to as
+  many samples again: it is read when the new job's head reaches it, where dropping it would
+  decode its videos twice in the epoch. A sample a plan still unfolding has not placed yet counts
+  at its place in the production order (the shuffle buffer draws a sample about there:
+  :func:`production_places`), and is kept where no head moves (it is read next); those of the
+  videos a pending fetch waits on to unfold the plan are that fetch's. The next epoch's samples,
+  before any reader fetched it (or where only a job cut off did), lie past the end of the epoch
+  the heads read: they reach them there.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
