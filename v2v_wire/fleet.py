@@ -263,9 +263,9 @@ class Router:
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
         #: host -> requests this reader awaits an answer to from it: its pass's in flight, which
-        #: the pass counts (a request outlives the queue :meth:`move_off` and :meth:`moved` take
+        #: the pass keeps (a request outlives the queue :meth:`move_off` and :meth:`moved` take
         #: off a host: a move asked of a host that died is awaited there still).
-        self.awaited: Mapping[str, int] = {}
+        self.awaited: Mapping[str, Collection] = {}
         self._load = 0
         self._routed = [0, 0]  # videos routed, their samples summed: :meth:`per_video`
         for h in hosts:
