@@ -2,9 +2,10 @@
 hosts of unequal speed, which stall now and then, delivers in plan order, against the sum of the
 hosts' rates, for the two ways hosts split the work:
 
-* **routed** (``v2v_wire.fleet.Router``): every host serves the one plan; the reader asks each
-  video of the host weighted rendezvous hashing and the bounded load pick, and hedges a video it
-  waits on when its host went silent;
+* **routed** (``v2v_wire.fleet.Router``): every host serves the one plan; each reader is the
+  client's own ``v2v_client.fleet_pass.Pass`` (``harness.fleet_sim_pass``: this module's hosts
+  with a server's side of the protocol), which asks each video of the host weighted rendezvous
+  hashing and the bounded load pick, and hedges a video it waits on when its host went silent;
 * **static**: the corpus split by the hash of each path (``v2v-serve --shard I/N``), each shard's
   own plan, read interleaved (global position ``t`` is shard ``t mod N``'s ``t // N``,
   ``v2v_wire.plan_shards``): a step waits for every shard.
@@ -26,7 +27,9 @@ one, each rank reads its slice of every step with its own router, asking the cli
 only, each of its arbiter (``Router.arbiter``), which places it where the first rank to ask it
 picked (at once: no round trip is modelled); a host keeps what it made and answers a later ask
 of it at once. A rank that hears a host's first rate moves the clips that host would make late
-to its next pick, with every rank's make of each not started there (``Pass.rebalance``).
+to its next pick, with every rank's make of each not started there (``Pass.rebalance``). That
+model of the reader (:class:`_World`) reads the fleet the HPA sizes below; an epoch of a fixed
+fleet is read by the real pass (:func:`simulate`).
 
 **A fleet the HPA sizes** (:func:`autoscale`): a trainer of fixed appetite (samples/s) reads the
 epoch step by step, each once its rows are had and no sooner than its appetite allows; the
@@ -52,6 +55,7 @@ if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports belo
 import argparse
 import heapq
 import json
+import logging
 import sys
 from pathlib import Path
 from dataclasses import asdict, dataclass, replace
@@ -546,9 +550,10 @@ class _World:
 
 def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
              held: Optional[Dict[str, str]] = None) -> Result:
-    """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``routers``:
-    each rank's router kept from an earlier epoch (routed only; default new ones, ``f.ranks`` of
-    them); ``held``: clip -> the host that made it in that epoch (its frame cache holds it).
+    """One epoch of fleet ``f`` split as ``mode`` (``"routed"``: read by the client's own
+    ``Pass``, ``harness.fleet_sim_pass``; or ``"static"``); ``routers``: each rank's router kept
+    from an earlier epoch (routed only; default new ones, ``f.ranks`` of them); ``held``: clip ->
+    the host that made it in that epoch (its frame cache holds it).
 
     Raises:
         ValueError: another mode, naming it, or a number of routers or ranks that does not
@@ -560,10 +565,11 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
                          f"and {None if routers is None else len(routers)} routers")
     if mode == "static" and f.ranks != 1:
         raise ValueError(f"static shards are simulated with one reader, got ranks={f.ranks}")
+    if mode == "routed":  # read by the client's own pass (that module builds on this one's fleet)
+        from harness.fleet_sim_pass import simulate_pass
+        return simulate_pass(f, epoch, routers, held)
     lay = _layout(f, mode, epoch)
-    if mode == "routed" and routers is None:
-        routers = _routers(f)
-    w = _World(f, lay, routers if mode == "routed" else None, held)
+    w = _World(f, lay, None, held)
     w.run()
     end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)
@@ -571,9 +577,8 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
     t_hi = next(t for p, t in w.step_times if p >= hi)
     steady = sum(1 for c in lay.pos_clip[lo:hi] if c is not None)
     capacity = float(sum(w.speeds[k] * f.slots * (1 - w.stalls.stalled(k, end) / end) for k in range(f.hosts)))
-    made_by = w.made_by if mode == "routed" else {c: w.hosts[lay.home[c]] for c in lay.needs}
     return Result(mode, lay.samples, length, end, lay.samples / end, steady / max(t_hi - t_lo, 1e-9), capacity,
-                  w.decodes / max(1, len(lay.needs)), made_by)
+                  w.decodes / max(1, len(lay.needs)), {c: w.hosts[lay.home[c]] for c in lay.needs})
 
 
 def _routers(f: Fleet) -> List[Router]:
@@ -1094,6 +1099,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
+    logging.getLogger("v2v.client").setLevel(logging.ERROR)  # the passes' lines (a host placed a clip at a
+    # silent one): hundreds over a simulated fleet's stalls, where the table is what the run says
     runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
             for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
     seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"

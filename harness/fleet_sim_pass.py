@@ -1,0 +1,333 @@
+"""The simulator's fleet (``harness.fleet_sim``) read by the client's own reader: each rank a real
+``v2v_client.fleet_pass.Pass`` with its own ``v2v_wire.fleet.Router`` and ``ReaderMemory``, turned
+as ``fleet_read.Fleet.fetch_all`` turns it (fill, ask the window, the head's rows, else rescue;
+the hosts' answers taken as they come, or after half a second), its ``Make``, ``PlanAsk`` and
+``Withdraw`` messages taken by a model of the hosts, its rows tiny arrays in real ``Rows``.
+
+The hosts are ``fleet_sim``'s (the same corpus, speeds, workers and stalls, each host measuring
+its own capacity as a server does) with a server's side of the protocol: a make with a route is
+placed as ``plan_orders.Orders.place`` places it (made here, or ``Moved`` to where a reader
+placed it first; a move takes every reader's make of the video waiting here along), else queued
+by its ``position``; a worker decodes a whole video and every make waiting on it is answered;
+a host keeps what it made and answers a later make of it at once; a ``Withdraw`` drops a make
+still waiting; a ``PlanAsk`` is answered with the host's rate and queue. A stalled host takes
+nothing until its stall ends, as a paused process reads its socket only when it runs again.
+Messages take no time on the way.
+
+The job: ``ranks`` readers, each reading its slice of every step (as data-parallel ranks read
+their batches), each up to ``READ_AHEAD`` steps ahead of the slowest (``ReadAhead``'s batches
+held ready); the trainer takes a step as soon as every rank has it. Pure and seeded: no
+socket, no clock. ``python -m harness.fleet_sim --reader pass`` prints its table beside the
+static split's.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Set, Tuple
+
+import numpy as np
+
+from harness.fleet_sim import Fleet, Result, _Stalls, _speeds, corpus
+from v2v_client.fleet_pass import STEAL_S, Pass, ReaderMemory
+from v2v_client.read_ahead import READ_AHEAD
+from v2v_server.delivery.plan_orders import TOLD_S
+from v2v_wire.fleet import RateMeter, Router
+from v2v_wire.plan import Manifest, PlanIdentity
+from v2v_wire.plan_messages import Fetch, Make, Moved, PlanAsk, PlanInfo, Rows, Withdraw
+from v2v_wire.protocol import encode_arrays
+
+#: The readers' ``retry_s`` and ``prefetch`` (``V2VStreamDataset``'s defaults).
+RETRY_S, PREFETCH = 10.0, 2
+#: Seconds a pass's loop waits for an answer before it turns anyway (``Fleet.take``).
+TAKE_S = 0.5
+#: The outputs asked, and the hosts' stream (a padding row's shapes): one byte a sample.
+OUTPUTS = ("voxel",)
+STREAM = {"sequence_length": 1, "num_bins": 1, "crop_size": 1, "flow_dtype": "float16", "outputs": list(OUTPUTS)}
+
+
+@dataclass(eq=False)
+class _Host:
+    """One host: its makes waiting by video (``(rank, request, ordinals)``), its queue of videos
+    (by the first position a make asks them at), its decodes running (video -> [start, end,
+    samples and busy seconds its meter counted]), the videos it made (kept), where it placed
+    videos (video -> (host, when)), and its workers free."""
+
+    name: str
+    k: int
+    free: int
+    meter: RateMeter = field(default_factory=RateMeter)
+    waiting: Dict[str, List[Tuple[int, int, Tuple[int, ...]]]] = field(default_factory=dict)
+    queue: List[Tuple[int, int, str]] = field(default_factory=list)
+    running: Dict[str, List[float]] = field(default_factory=dict)
+    made: Set[str] = field(default_factory=set)
+    placed: Dict[str, Tuple[str, float]] = field(default_factory=dict)
+    queued: int = 0
+
+
+@dataclass(eq=False)
+class _Reader:
+    """One rank's process: its pass, the steps it has yet to add, the answers it has not taken,
+    the steps it handed on, and its wake-ups (only the latest counts)."""
+
+    rank: int
+    read: Pass
+    todo: object
+    inbox: List[Tuple[str, object, list]] = field(default_factory=list)
+    yielded: int = 0
+    token: int = 0
+    wake_at: float = math.inf
+
+
+class PassWorld:
+    """One epoch of fleet ``f`` (``fleet_sim.Fleet``; ``f.lookahead`` is not used: each pass
+    asks ahead by its own rule) read by ``f.ranks`` real passes (module docstring)."""
+
+    def __init__(self, f: Fleet, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
+                 held: Optional[Dict[str, str]] = None):
+        if f.ranks < 1 or f.step % f.ranks or (routers is not None and len(routers) != f.ranks):
+            raise ValueError(f"ranks must divide step ({f.step}) and each rank have one router, got ranks={f.ranks} "
+                             f"and {None if routers is None else len(routers)} routers")
+        self.f, self.epoch = f, epoch
+        self.slots = corpus(f)
+        manifest = Manifest.of(self.slots)
+        self.identity = PlanIdentity(manifest.fingerprint(), "fleet_sim", f.seed, 64)
+        self.speeds = _speeds(f)
+        self.names = [f"host-{k:03d}" for k in range(f.hosts)]
+        self.index = {h: k for k, h in enumerate(self.names)}
+        self.hosts = [_Host(h, k, f.slots) for k, h in enumerate(self.names)]
+        self.events: List[tuple] = []
+        self.seq = 0
+        self.now = 0.0
+        self.decodes = 0
+        self.per = f.step // f.ranks
+        self.readers: List[_Reader] = []
+        routers = routers or [Router(self.names, slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S, workers=f.slots)
+                              for _ in range(f.ranks)]
+        #: the readers' clock at the epoch's start: after what routers kept from an epoch before heard
+        self.t0 = max((s.heard for r in routers for s in r.hosts.values()), default=0.0)
+        for r, router in enumerate(routers):
+            memory = ReaderMemory(windows=dict(self.slots), made=dict(held or {}))
+            read = Pass(router, memory, manifest, self.identity, self.fetch_of(r, 0), PREFETCH, RETRY_S,
+                        "fleet_sim", set(self.names), stream=STREAM, now=self.t0)
+            read.add(0, self.fetch_of(r, 0))
+            self.readers.append(_Reader(r, read, iter(range(1, 1 << 62))))
+        self.samples = len(self.readers[0].read.plan)
+        self.steps = -(-self.samples // f.step)
+        for rd in self.readers:
+            rd.todo = iter(range(1, self.steps))
+        self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
+        self.step_times: List[Tuple[int, float]] = []
+        self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
+
+    def fetch_of(self, rank: int, step: int) -> Fetch:
+        """Rank ``rank``'s slice of step ``step``."""
+        start = step * self.f.step + rank * self.per
+        return Fetch(0, self.epoch, start, start + self.per, OUTPUTS, self.identity)
+
+    # ------------------------------------------------------------------ events
+    def push(self, t: float, kind: str, a, b=None) -> None:
+        self.seq += 1
+        heapq.heappush(self.events, (t, self.seq, kind, a, b))
+
+    def to_reader(self, rank: int, ep: str, msg, frames=()) -> None:
+        rd = self.readers[rank]
+        rd.inbox.append((ep, msg, list(frames)))
+        if rd.wake_at > self.now:
+            self.wake(rd, self.now)
+
+    def wake(self, rd: _Reader, t: float) -> None:
+        rd.token += 1
+        rd.wake_at = t
+        self.push(t, "wake", rd.rank, rd.token)
+
+    # ------------------------------------------------------------------ hosts
+    def rate(self, h: _Host) -> Optional[float]:
+        """The capacity host ``h`` says now: its meter counts each sample as a worker makes it (a
+        decode's samples come evenly over it), with the busy seconds up to it (``ServerMetrics``)."""
+        for video, p in h.running.items():
+            start, end, counted, busy = p
+            n = self.slots[video]
+            made = min(n - 1, int((self.now - start) / (end - start) * n)) if end > start else 0
+            if made > counted:
+                took = made * (end - start) / n
+                h.meter.add(made - counted, (took - busy) / self.f.slots, self.now)
+                p[2], p[3] = made, took
+        return h.meter.rate()
+
+    def host_message(self, k: int, rank: int, msg) -> None:
+        h = self.hosts[k]
+        if self.stalls.silent(k, self.now):  # read when the process runs again
+            i = int(np.searchsorted(self.stalls.ends[k], self.now, side="right"))
+            self.push(float(self.stalls.ends[k][i]), "host", k, (rank, msg))
+            return
+        if isinstance(msg, PlanAsk):
+            self.to_reader(rank, h.name, PlanInfo(self.identity, self.samples, STREAM, queued=h.queued,
+                                                  rate=self.rate(h), withdraws=True))
+        elif isinstance(msg, Withdraw):
+            for video, makes in h.waiting.items():
+                left = [m for m in makes if (m[0], m[1]) != (rank, msg.request)]
+                if len(left) != len(makes):
+                    h.queued -= sum(len(m[2]) for m in makes if (m[0], m[1]) == (rank, msg.request))
+                    h.waiting[video] = left
+                    break
+        elif isinstance(msg, Make):
+            self.make(h, rank, msg)
+
+    def place(self, h: _Host, msg: Make) -> Optional[str]:
+        """``Orders.place``: where ``msg`` is made, None here."""
+        if msg.route is None:
+            return None
+        placed = h.placed.get(msg.video)
+        if placed is not None and self.now - placed[1] < TOLD_S:
+            return placed[0]
+        started = msg.move and (msg.video in h.running or msg.video in h.made)
+        if msg.route == "" or msg.video in h.made or started or not msg.move and h.waiting.get(msg.video):
+            return None
+        h.placed[msg.video] = (msg.route, self.now)
+        return msg.route
+
+    def make(self, h: _Host, rank: int, msg: Make) -> None:
+        to = self.place(h, msg)
+        if to is not None:
+            if msg.move:  # every reader's make of it waiting here goes with it
+                for r, req, ords in h.waiting.pop(msg.video, []):
+                    h.queued -= len(ords)
+                    self.to_reader(r, h.name, Moved(req, to))
+            self.to_reader(rank, h.name, Moved(msg.request, to))
+            return
+        ords = tuple(msg.ordinals) if msg.ordinals is not None else ()
+        if msg.video in h.made or not ords:
+            self.answer(h, rank, msg.request, msg.video, ords)
+            return
+        h.waiting.setdefault(msg.video, []).append((rank, msg.request, ords))
+        h.queued += len(ords)
+        heapq.heappush(h.queue, (msg.position, self.seq, msg.video))
+        self.seq += 1
+        self.start_work(h)
+
+    def start_work(self, h: _Host) -> None:
+        while h.free and h.queue:
+            _, _, video = heapq.heappop(h.queue)
+            if video in h.made or video in h.running or not h.waiting.get(video):
+                continue
+            h.free -= 1
+            self.decodes += 1
+            end = self.stalls.finish(h.k, self.now, self.slots[video] / self.speeds[h.k])
+            h.running[video] = [self.now, end, 0.0, 0.0]
+            self.push(end, "done", h.k, video)
+
+    def done(self, k: int, video: str) -> None:
+        h = self.hosts[k]
+        h.free += 1
+        start, _, counted, busy = h.running.pop(video)
+        h.meter.add(self.slots[video] - counted, (self.now - start - busy) / self.f.slots, self.now)
+        h.made.add(video)
+        for r, req, ords in h.waiting.pop(video, []):
+            h.queued -= len(ords)
+            self.answer(h, r, req, video, ords)
+        self.start_work(h)
+
+    def answer(self, h: _Host, rank: int, request: int, video: str, ords: Tuple[int, ...]) -> None:
+        specs, frames = encode_arrays({"voxel": np.zeros((len(ords), 1), np.uint8)})
+        rows = Rows(request, self.epoch, 0, [f"{video}#{o}" for o in ords], [False] * len(ords), [{}] * len(ords),
+                    specs, self.samples, self.slots[video], rate=self.rate(h), queued=h.queued)
+        self.to_reader(rank, h.name, rows, [fr.tobytes() for fr in frames])
+
+    # ------------------------------------------------------------------ readers
+    def turn(self, rd: _Reader) -> None:
+        """Rank ``rd``'s answers taken and its pass turned until its head waits (``Fleet.turn``),
+        or until it holds ``READ_AHEAD`` steps the job has not taken."""
+        read = rd.read
+        for ep, msg, frames in rd.inbox:
+            read.receive(ep, msg, frames, self.t0 + self.now)
+            self.send(rd)
+        rd.inbox = []
+        at = self.t0 + self.now
+        while read.window and rd.yielded - self.taken() < READ_AHEAD:
+            read.fill(rd.todo, lambda _, s, r=rd.rank: self.fetch_of(r, s), at)
+            read.ask_window(at)
+            head = read.head_rows(at)
+            if head is None:
+                read.rescue(at)
+                self.send(rd)
+                self.wake(rd, self.now + TAKE_S)
+                return
+            self.send(rd)
+            self.check(rd, *head[:2])
+            rd.yielded += 1
+            read.wanted(at)
+            self.job()
+
+    def check(self, rd: _Reader, step: int, rows: Rows) -> None:
+        """Rank ``rd``'s step ``step`` holds its slice's samples of the plan, in order, then
+        padding past the epoch's end.
+
+        Raises:
+            RuntimeError: a row that is not the plan's sample there, naming it."""
+        f = self.fetch_of(rd.rank, step)
+        plan, kpw = rd.read.plan, rd.read.kpw
+        for p, got in zip(range(f.start, f.stop), rows.sample_ids):
+            key = plan.key(p)
+            want = None if key is None else f"{key.video}#{key.ordinal(kpw)}"
+            if got != want:
+                raise RuntimeError(f"fleet_sim_pass: rank {rd.rank} read {got} at position {p}, the plan's is {want}")
+            if key is not None:
+                self.made_by.setdefault(key.video, rd.read.memory.made[key.video])
+
+    def taken(self) -> int:
+        return min(rd.yielded for rd in self.readers)
+
+    def job(self) -> None:
+        """The trainer takes each step every rank has: ranks held back by it turn again."""
+        taken = self.taken()
+        while len(self.step_times) < taken:
+            self.step_times.append((min(self.samples, len(self.step_times) * self.f.step + self.f.step), self.now))
+            for rd in self.readers:
+                if rd.read.window and rd.yielded - taken < READ_AHEAD and rd.wake_at > self.now:
+                    self.wake(rd, self.now)
+
+    def send(self, rd: _Reader) -> None:
+        out, rd.read.outbox = rd.read.outbox, []
+        for ep, msg in out:
+            self.push(self.now, "host", self.index[ep], (rd.rank, msg))
+
+    def run(self) -> Result:
+        for rd in self.readers:
+            self.wake(rd, 0.0)
+        while len(self.step_times) < self.steps:
+            if not self.events:
+                raise RuntimeError(f"fleet_sim_pass: stuck at step {len(self.step_times)} of {self.steps}")
+            self.now, _, kind, a, b = heapq.heappop(self.events)
+            if kind == "wake":
+                rd = self.readers[a]
+                if b == rd.token:
+                    rd.wake_at = math.inf
+                    self.turn(rd)
+            elif kind == "done":
+                self.done(a, b)
+            else:
+                self.host_message(a, *b)
+        end = self.now
+        lo, hi = int(0.1 * self.samples), int(0.9 * self.samples)
+        t_lo = next(t for p, t in self.step_times if p >= lo)
+        t_hi = next(t for p, t in self.step_times if p >= hi)
+        f = self.f
+        capacity = float(sum(self.speeds[k] * f.slots * (1 - self.stalls.stalled(k, end) / end)
+                             for k in range(f.hosts)))
+        clips = sum(1 for n in self.slots.values() if n)
+        return Result("routed", self.samples, self.steps * f.step, end, self.samples / end,
+                      (hi - lo) / max(t_hi - t_lo, 1e-9), capacity, self.decodes / max(1, clips), self.made_by)
+
+
+def simulate_pass(f: Fleet, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
+                  held: Optional[Dict[str, str]] = None) -> Result:
+    """One epoch of fleet ``f`` read by ``f.ranks`` real passes (:class:`PassWorld`); ``routers``:
+    each rank's router kept from an earlier epoch (default new ones); ``held``: clip -> the host
+    that made it in that epoch (its frame cache holds it: ``Router.route``'s ``held``).
+
+    Raises:
+        ValueError: ranks that do not divide the step.
+        RuntimeError: the epoch stuck (no event left before every step was read)."""
+    return PassWorld(f, epoch, routers, held).run()
