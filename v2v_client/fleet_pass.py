@@ -468,21 +468,23 @@ class Pass:
                 self.send(video, ords, host, now, here=True)  # a hedge is made where asked, not moved back
         steal(self, now, now - self.head_since >= STEAL_S)
         for h in [h for h in self.flight.hosts if h not in self.router.hosts]:
-            for hr in sorted(self.flight.hosts.get(h, ())):  # left the fleet: its videos go to the next hosts of their rankings
-                video, ords = self.flight.pop(hr)
+            for hr in sorted(self.flight.hosts.get(h, ())):  # left the fleet: its videos go to the
+                video, ords = self.flight.pop(hr)  # next hosts of their rankings
                 v = self.videos[video]
                 del v.flight[hr]
                 v.host = None if v.host == h else v.host
                 self.ask(video, ords, now)
         sent = self.flight.sent
-        while sent and now - sent[0][0] >= self.retry_s:
+        while sent and now - sent[0][0] >= self.retry_s:  # unanswered for retry_s: a lost reply, a restart
             _, hr, video = heapq.heappop(sent)
             if hr not in self.flight:
                 continue  # answered, or asked again already
             h, ords, _ = self.videos[video].flight[hr]
-            spill = self.flight.moves.get(hr)  # asked again (a move as a move) before the request it
-            self.send(video, ords, h, now, spill=spill, move=spill is not None)  # replaces is dropped: the
-            del self.videos[video].flight[hr]  # host's silence counts on
+            # asked again (a move as a move) before the request it replaces is dropped, so the
+            # host's silence counts on
+            spill = self.flight.moves.get(hr)
+            self.send(video, ords, h, now, spill=spill, move=spill is not None)
+            del self.videos[video].flight[hr]
             self.flight.pop(hr, None)
 
     def receive(self, ep: str, msg, frames, now: float) -> None:
