@@ -240,6 +240,7 @@ class PassWorld:
         """Rank ``rd``'s answers taken and its pass turned until its head waits (``Fleet.turn``),
         or until it holds ``READ_AHEAD`` steps the job has not taken."""
         read = rd.read
+        read.router.listen(self.t0 + self.now)
         for ep, msg, frames in rd.inbox:
             read.receive(ep, msg, frames, self.t0 + self.now)
             self.send(rd)
@@ -254,6 +255,7 @@ class PassWorld:
                 self.send(rd)
                 self.wake(rd, self.now + TAKE_S)
                 return
+            read.ping(at)
             self.send(rd)
             self.check(rd, *head[:2])
             rd.yielded += 1

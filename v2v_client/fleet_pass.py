@@ -438,12 +438,19 @@ class Pass:
         self.head_since = max(self.head_since, now)
 
     # ------------------------------------------------------------------ what the head waits on
+    def ping(self, now: float) -> None:
+        """Ping the hosts ``Router.pings`` names (a ``PlanAsk``: a host's server loop answers it
+        whatever its workers do), at every turn, the head's rows had or not: a host making a long
+        video for this reader says nothing else meanwhile, and a reader that pinged only while its
+        head waited took a host it had not pinged for a while for silent at its next wait."""
+        for h in self.router.pings(now):
+            self.outbox.append((h, PlanAsk()))
+
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
         (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
         and the asks no host could take before."""
-        for h in self.router.pings(now):  # its server loop answers a plan_ask whatever its workers do
-            self.outbox.append((h, PlanAsk()))
+        self.ping(now)
         parked, self.parked = self.parked, []
         for video, ords in parked:
             self.ask(video, ords, now)

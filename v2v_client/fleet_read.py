@@ -485,19 +485,23 @@ class Fleet:
         return read
 
     def turn(self, read: Pass, todo, fetch_of, now: float) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
-        """One turn of the pass's loop: the endpoint resolved again (at most every
+        """One turn of the pass's loop: the hosts listened to (``Router.listen``: a loop held
+        since its last turn took no host for silent), the endpoint resolved again (at most every
         :data:`RESOLVE_S`), the window filled from ``todo`` and asked for, the head's rows
-        (``Pass.head_rows``) once known, else what it waits on rescued (``Pass.rescue``); what
-        the pass asked is sent.
+        (``Pass.head_rows``) once known and the quiet hosts pinged (``Pass.ping``), else what it
+        waits on rescued (``Pass.rescue``, pings included); what the pass asked is sent.
 
         Raises:
             PlanMismatch, PlanServerError: as :meth:`check_hosts_left`; as ``Pass.ask``."""
+        self.router.listen(now)
         self._resolve(now)
         read.fill(todo, fetch_of, now)
         read.ask_window(now)
         head = read.head_rows(now)
         if head is None:
             read.rescue(now)
+        else:
+            read.ping(now)
         self.send_out(read)
         if head is None:
             self.check_hosts_left(read)

@@ -266,6 +266,7 @@ class Router:
         #: the pass keeps (a request outlives the queue :meth:`move_off` and :meth:`moved` take
         #: off a host: a move asked of a host that died is awaited there still).
         self.awaited: Mapping[str, Collection] = {}
+        self.listened: Optional[float] = None  # when this reader last read its hosts' answers (:meth:`listen`)
         self._load = 0
         self._routed = [0, 0]  # videos routed, their samples summed: :meth:`per_video`
         for h in hosts:
@@ -576,6 +577,20 @@ class Router:
             s.rate = rate
         if queued is not None:
             s.others, s.said = max(0.0, float(queued) - s.load), now
+
+    def listen(self, now: float) -> None:
+        """This reader reads its hosts' answers at ``now`` (each turn of its loop). The seconds
+        since it last did, past :attr:`ping_s`, it heard nothing and pinged no one: its loop held
+        batches its trainer had not taken (a rank waiting on the job's slowest), or its process
+        was paused. They do not count toward any host's silence (:meth:`suspect`): else a reader
+        takes its own deafness for its hosts' and hedges what they are making (128 simulated
+        hosts, 32 readers, no stalls: 4,300 videos hedged)."""
+        if self.listened is not None:
+            deaf = now - self.listened - self.ping_s
+            if deaf > 0:
+                for s in self.hosts.values():
+                    s.heard = min(now, s.heard + deaf)
+        self.listened = now if self.listened is None else max(self.listened, now)
 
     def pings(self, now: float) -> List[str]:
         """The hosts to ping at ``now`` (a ``plan_ask``; its answer is :meth:`heard`), each at most
