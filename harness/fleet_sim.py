@@ -1099,10 +1099,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
-    logging.getLogger("v2v.client").setLevel(logging.ERROR)  # the passes' lines (a host placed a clip at a
-    # silent one): hundreds over a simulated fleet's stalls, where the table is what the run says
-    runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
-            for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
+    # the passes' lines (a host placed a clip at a silent one) are hundreds over a simulated fleet's
+    # stalls, where the table is what the run says: kept out of it, and the level put back after
+    client_log = logging.getLogger("v2v.client")
+    level = client_log.level
+    client_log.setLevel(logging.ERROR)
+    try:
+        runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
+                for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
+    finally:
+        client_log.setLevel(level)
     seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
           f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading, {seeds}")
