@@ -212,6 +212,24 @@ class _Stalls:
         return i < len(self.starts[host]) and self.starts[host][i] <= t
 
 
+def said_rate(meter: RateMeter, running: Dict[str, List[float]], samples_of, now: float, slots: int,
+              at: float) -> Optional[float]:
+    """A host's capacity as it says it at ``now`` (samples/s, None before it is measured): its
+    ``meter`` counts each sample as a worker makes it, a decode's samples coming evenly over it
+    (``running``: clip -> [start, end, samples and busy seconds counted], updated), with the busy
+    seconds up to it, as a server counts them (``ServerMetrics.capacity``); ``samples_of(clip)``:
+    the clip's samples; ``at``: the meter's clock."""
+    for clip, p in running.items():
+        start, end, counted, busy = p
+        n = samples_of(clip)
+        made = min(n - 1, int((now - start) / (end - start) * n)) if end > start else 0
+        if made > counted:
+            took = made * (end - start) / n
+            meter.add(made - counted, (took - busy) / slots, at)
+            p[2], p[3] = made, took
+    return meter.rate()
+
+
 def _epoch(slots: Dict[str, int], seed: int, epoch: int) -> EpochPlan:
     return EpochPlan(Manifest.of(slots), seed, epoch, 64)
 
@@ -348,15 +366,8 @@ class _World:
         """Host ``k``'s capacity as it says it now: its meter counts each sample as a worker makes
         it (a decode's samples come evenly over it), with the busy seconds up to it, as a
         server counts them (``ServerMetrics.capacity``)."""
-        for clip, p in self.progress[k].items():
-            start, end, counted, busy = p
-            n = self.lay.needs[clip][1]
-            made = min(n - 1, int((self.now - start) / (end - start) * n)) if end > start else 0
-            if made > counted:
-                took = made * (end - start) / n
-                self.meters[k].add(made - counted, (took - busy) / self.f.slots, self.t0 + self.now)
-                p[2], p[3] = made, took
-        return self.meters[k].rate()
+        return said_rate(self.meters[k], self.progress[k], lambda clip: self.lay.needs[clip][1], self.now,
+                         self.f.slots, self.t0 + self.now)
 
     def ask(self, rank: int, clip: str, k: int) -> None:
         self.outstanding[rank].add(clip)

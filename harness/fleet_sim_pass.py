@@ -1,7 +1,7 @@
 """The simulator's fleet (``harness.fleet_sim``) read by the client's own reader: each rank a real
 ``v2v_client.fleet_pass.Pass`` with its own ``v2v_wire.fleet.Router`` and ``ReaderMemory``, turned
-as ``fleet_read.Fleet.fetch_all`` turns it (fill, ask the window, the head's rows, else rescue;
-the hosts' answers taken as they come, or after half a second), its ``Make``, ``PlanAsk`` and
+as ``fleet_read.Fleet.fetch_all`` turns it (fill, ask the window, the head's rows and the quiet
+hosts pinged, else rescue; the hosts' answers taken as they come, or after half a second), its ``Make``, ``PlanAsk`` and
 ``Withdraw`` messages taken by a model of the hosts, its rows tiny arrays in real ``Rows``.
 
 The hosts are ``fleet_sim``'s (the same corpus, speeds, workers and stalls, each host measuring
@@ -17,8 +17,8 @@ Messages take no time on the way.
 The job: ``ranks`` readers, each reading its slice of every step (as data-parallel ranks read
 their batches), each up to ``READ_AHEAD`` steps ahead of the slowest (``ReadAhead``'s batches
 held ready); the trainer takes a step as soon as every rank has it. Pure and seeded: no
-socket, no clock. ``python -m harness.fleet_sim --reader pass`` prints its table beside the
-static split's.
+socket, no clock. ``python -m harness.fleet_sim`` prints its figures as the routed row, beside
+the static split's.
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 
-from harness.fleet_sim import Fleet, Result, _Stalls, _speeds, corpus
+from harness.fleet_sim import Fleet, Result, _Stalls, _speeds, corpus, said_rate
 from v2v_client.fleet_pass import STEAL_S, Pass, ReaderMemory
 from v2v_client.read_ahead import READ_AHEAD
 from v2v_server.delivery.plan_orders import TOLD_S
@@ -144,17 +144,8 @@ class PassWorld:
 
     # ------------------------------------------------------------------ hosts
     def rate(self, h: _Host) -> Optional[float]:
-        """The capacity host ``h`` says now: its meter counts each sample as a worker makes it (a
-        decode's samples come evenly over it), with the busy seconds up to it (``ServerMetrics``)."""
-        for video, p in h.running.items():
-            start, end, counted, busy = p
-            n = self.slots[video]
-            made = min(n - 1, int((self.now - start) / (end - start) * n)) if end > start else 0
-            if made > counted:
-                took = made * (end - start) / n
-                h.meter.add(made - counted, (took - busy) / self.f.slots, self.now)
-                p[2], p[3] = made, took
-        return h.meter.rate()
+        """The capacity host ``h`` says now (``fleet_sim.said_rate``)."""
+        return said_rate(h.meter, h.running, self.slots.__getitem__, self.now, self.f.slots, self.now)
 
     def host_message(self, k: int, rank: int, msg) -> None:
         h = self.hosts[k]
