@@ -102,6 +102,8 @@ class PassWorld:
         self.now = 0.0
         self.decodes = 0
         self.per = f.step // f.ranks
+        self.samples = sum(self.slots.values())  # the epoch's positions holding a sample (a window a sample)
+        self.steps = -(-self.samples // f.step)
         self.readers: List[_Reader] = []
         routers = routers or [Router(self.names, slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S, workers=f.slots)
                               for _ in range(f.ranks)]
@@ -112,11 +114,7 @@ class PassWorld:
             read = Pass(router, memory, manifest, self.identity, self.fetch_of(r, 0), PREFETCH, RETRY_S,
                         "fleet_sim", set(self.names), stream=STREAM, now=self.t0)
             read.add(0, self.fetch_of(r, 0))
-            self.readers.append(_Reader(r, read, iter(range(1, 1 << 62))))
-        self.samples = len(self.readers[0].read.plan)
-        self.steps = -(-self.samples // f.step)
-        for rd in self.readers:
-            rd.todo = iter(range(1, self.steps))
+            self.readers.append(_Reader(r, read, iter(range(1, self.steps))))
         self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.step_times: List[Tuple[int, float]] = []
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
@@ -128,16 +126,20 @@ class PassWorld:
 
     # ------------------------------------------------------------------ events
     def push(self, t: float, kind: str, a, b=None) -> None:
+        """An event at ``t``: ``"wake"`` (rank, token), ``"done"`` (host, video) or ``"host"``
+        (host, (rank, message))."""
         self.seq += 1
         heapq.heappush(self.events, (t, self.seq, kind, a, b))
 
     def to_reader(self, rank: int, ep: str, msg, frames=()) -> None:
+        """Host ``ep``'s message to rank ``rank``: taken at its next turn, which it wakes now."""
         rd = self.readers[rank]
         rd.inbox.append((ep, msg, list(frames)))
         if rd.wake_at > self.now:
             self.wake(rd, self.now)
 
     def wake(self, rd: _Reader, t: float) -> None:
+        """Rank ``rd`` turns at ``t``, and not at any wake-up asked before."""
         rd.token += 1
         rd.wake_at = t
         self.push(t, "wake", rd.rank, rd.token)
@@ -148,6 +150,7 @@ class PassWorld:
         return said_rate(h.meter, h.running, self.slots.__getitem__, self.now, self.f.slots, self.now)
 
     def host_message(self, k: int, rank: int, msg) -> None:
+        """Host ``k`` takes rank ``rank``'s message (at its stall's end if stalled now)."""
         h = self.hosts[k]
         if self.stalls.silent(k, self.now):  # read when the process runs again
             i = int(np.searchsorted(self.stalls.ends[k], self.now, side="right"))
@@ -180,6 +183,7 @@ class PassWorld:
         return msg.route
 
     def make(self, h: _Host, rank: int, msg: Make) -> None:
+        """``take_make``: placed elsewhere (``Moved``), answered from what ``h`` made, or queued."""
         to = self.place(h, msg)
         if to is not None:
             if msg.move:  # every reader's make of it waiting here goes with it
@@ -199,6 +203,7 @@ class PassWorld:
         self.start_work(h)
 
     def start_work(self, h: _Host) -> None:
+        """``h``'s free workers start the queue's first videos some make still waits on."""
         while h.free and h.queue:
             _, _, video = heapq.heappop(h.queue)
             if video in h.made or video in h.running or not h.waiting.get(video):
@@ -210,6 +215,7 @@ class PassWorld:
             self.push(end, "done", h.k, video)
 
     def done(self, k: int, video: str) -> None:
+        """Host ``k`` made ``video``: counted by its meter, kept, and every make waiting on it answered."""
         h = self.hosts[k]
         h.free += 1
         start, _, counted, busy = h.running.pop(video)
@@ -221,6 +227,7 @@ class PassWorld:
         self.start_work(h)
 
     def answer(self, h: _Host, rank: int, request: int, video: str, ords: Tuple[int, ...]) -> None:
+        """``PlanServer._send_rows``: ``h``'s rows of ``ords`` of ``video``, with its rate and queue."""
         specs, frames = encode_arrays({"voxel": np.zeros((len(ords), 1), np.uint8)})
         rows = Rows(request, self.epoch, 0, [f"{video}#{o}" for o in ords], [False] * len(ords), [{}] * len(ords),
                     specs, self.samples, self.slots[video], rate=self.rate(h), queued=h.queued)
@@ -270,6 +277,7 @@ class PassWorld:
                 self.made_by.setdefault(key.video, rd.read.memory.made[key.video])
 
     def taken(self) -> int:
+        """Steps the job has taken: those every rank has handed on."""
         return min(rd.yielded for rd in self.readers)
 
     def job(self) -> None:
@@ -282,11 +290,16 @@ class PassWorld:
                     self.wake(rd, self.now)
 
     def send(self, rd: _Reader) -> None:
+        """Rank ``rd``'s outbox, each message to its host now (``Fleet.send_out``)."""
         out, rd.read.outbox = rd.read.outbox, []
         for ep, msg in out:
             self.push(self.now, "host", self.index[ep], (rd.rank, msg))
 
     def run(self) -> Result:
+        """The epoch, event by event, until the job took its last step.
+
+        Raises:
+            RuntimeError: no event left before then (stuck), or a row not the plan's (:meth:`check`)."""
         for rd in self.readers:
             self.wake(rd, 0.0)
         while len(self.step_times) < self.steps:
