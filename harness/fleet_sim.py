@@ -291,11 +291,9 @@ class _World:
     ``(p % step) * ranks // step == r``; a clip a host made is kept there and answered at once
     to the ranks that ask it later."""
 
-    def __init__(self, f: Fleet, lay: _Layout, routers: Optional[Sequence[Router]],
-                 held: Optional[Dict[str, str]] = None):
+    def __init__(self, f: Fleet, lay: _Layout, routers: Optional[Sequence[Router]]):
         self.f, self.lay, self.routers, self.n = f, lay, routers, f.hosts
         self.ranks = len(routers) if routers else 1
-        self.held = held or {}  # clip -> the host that made it the epoch before (its frame cache holds it)
         self.speeds = _speeds(f)  # samples/s of one worker of each host
         self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.hosts = [f"host-{k:03d}" for k in range(self.n)]
@@ -317,7 +315,6 @@ class _World:
         self.queued = [0] * self.n  # samples every rank asked of each host, not made yet: what it says
         self.placed: List[Dict[str, int]] = [{} for _ in range(self.n)]  # clip -> where its arbiter placed it
         self.outstanding: List[Set[str]] = [set() for _ in range(self.ranks)]  # clips asked, not had yet
-        self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
         self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
         self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
         self.step_times: List[Tuple[int, float]] = []
@@ -363,9 +360,7 @@ class _World:
             heapq.heappush(self.events, (end, k, clip))
 
     def rate(self, k: int) -> Optional[float]:
-        """Host ``k``'s capacity as it says it now: its meter counts each sample as a worker makes
-        it (a decode's samples come evenly over it), with the busy seconds up to it, as a
-        server counts them (``ServerMetrics.capacity``)."""
+        """Host ``k``'s capacity as it says it now (:func:`said_rate`)."""
         return said_rate(self.meters[k], self.progress[k], lambda clip: self.lay.needs[clip][1], self.now,
                          self.f.slots, self.t0 + self.now)
 
@@ -403,7 +398,6 @@ class _World:
         if first:
             self.done_at[(rank, clip)] = self.now
             self.outstanding[rank].discard(clip)
-            self.made_by.setdefault(clip, self.hosts[k])
             if r is not None:
                 r.finished(0, clip)
             self.fresh = True
@@ -429,7 +423,7 @@ class _World:
                 at = self.t0 + self.now
                 arbiter = router.arbiter(clip, at)
                 pick = router.route(0, clip, needs[clip][1], at, due=due, position=self.start_by(rank, clip),
-                                    held=self.held.get(clip), video_samples=self.lay.needs[clip][1])
+                                    video_samples=self.lay.needs[clip][1])
                 self.ask(rank, clip, self.placement(router, clip, arbiter, pick, at))
             else:
                 self.ask(rank, clip, self.lay.home[clip])
@@ -580,7 +574,7 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
         from harness.fleet_sim_pass import simulate_pass
         return simulate_pass(f, epoch, routers, held)
     lay = _layout(f, mode, epoch)
-    w = _World(f, lay, None, held)
+    w = _World(f, lay, None)
     w.run()
     end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)

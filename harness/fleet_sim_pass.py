@@ -23,6 +23,7 @@ the static split's.
 from __future__ import annotations
 
 import heapq
+import inspect
 import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Set, Tuple
@@ -30,6 +31,7 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 import numpy as np
 
 from harness.fleet_sim import Fleet, Result, _Stalls, _speeds, corpus, said_rate
+from v2v_client import V2VStreamDataset
 from v2v_client.fleet_pass import STEAL_S, Pass, ReaderMemory
 from v2v_client.read_ahead import READ_AHEAD
 from v2v_server.delivery.plan_orders import TOLD_S
@@ -38,8 +40,9 @@ from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import Fetch, Make, Moved, PlanAsk, PlanInfo, Rows, Withdraw
 from v2v_wire.protocol import encode_arrays
 
-#: The readers' ``retry_s`` and ``prefetch`` (``V2VStreamDataset``'s defaults).
-RETRY_S, PREFETCH = 10.0, 2
+#: The readers' ``retry_s`` and ``prefetch``: ``V2VStreamDataset``'s defaults.
+_DEFAULTS = inspect.signature(V2VStreamDataset).parameters
+RETRY_S, PREFETCH = _DEFAULTS["retry_s"].default, _DEFAULTS["prefetch"].default
 #: Seconds a pass's loop waits for an answer before it turns anyway (``Fleet.take``).
 TAKE_S = 0.5
 #: The outputs asked, and the hosts' stream (a padding row's shapes): one byte a sample.

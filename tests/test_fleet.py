@@ -845,8 +845,8 @@ def test_a_withdraw_and_the_servers_word_that_it_takes_one_are_checked_at_the_ed
 def test_a_fleet_pass_keeps_its_make_awaited_when_another_pass_answers_the_same_request_number():
     """Each pass numbers its requests to a host from 1, so an answer a host sends a pass before
     (another epoch) can carry the number of a make of this pass: it is not this make's answer.
-    The make stays awaited (the host, silent from then, is hedged) and is asked again after
-    ``retry_s``."""
+    The make stays in flight and awaited of the host (``Router.awaited``), and is asked again
+    after ``retry_s``."""
     from v2v_wire.plan_messages import Make, Rows
 
     read, sent = _fleet_pass({"a.mp4": 2}, ["h"])

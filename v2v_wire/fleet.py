@@ -583,8 +583,8 @@ class Router:
         since it last did, past :attr:`ping_s`, it heard nothing and pinged no one: its loop held
         batches its trainer had not taken (a rank waiting on the job's slowest), or its process
         was paused. They do not count toward any host's silence (:meth:`suspect`): else a reader
-        takes its own deafness for its hosts' and hedges what they are making (128 simulated
-        hosts, 32 readers, no stalls: 4,300 videos hedged)."""
+        takes its own deafness for its hosts' and, at its first turn after the pause, hedges
+        everything they are making."""
         if self.listened is not None:
             deaf = now - self.listened - self.ping_s
             if deaf > 0:
