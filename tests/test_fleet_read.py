@@ -234,3 +234,37 @@ def test_a_make_moved_off_a_host_takes_every_readers_waiting_make_with_it_and_is
         time.sleep(2)  # the worker is idle: nothing waits on the second video
         feed = open_stream(one.endpoint, timeout_s=30).server_feed()
         assert feed["samples_made_by_epoch"].get(0) == sum(1 for s in want if s.split("#")[0] == first)
+
+
+@pytest.mark.timeout(600)
+def test_a_fleet_pass_fails_a_stopped_host_over_while_its_loop_holds_a_step(tmp_path, videos):
+    """The pass's thread turns while the loop holds the step it took (``Fleet.fetch_all``): a
+    host stopped meanwhile (SIGSTOP, for the rest of the epoch) is pinged, found silent after
+    ``HEDGE_S`` and its videos asked of the other host, so the loop, back after holding its step
+    that long, never waits ``HEDGE_S`` on the stopped host (a pass turned only when its loop
+    asks waits it then); every id once, and the pass's thread ends with the epoch."""
+    import threading
+    import time
+
+    from v2v_client.fleet_read import HEDGE_S
+
+    root = corpus(tmp_path, videos, copies=3)
+    want = expected_ids(root)
+    base = ["--videos", str(root), *layout()]
+    with ServeProcess(base) as a, ServeProcess(base) as b:
+        it = iter(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", batch_size=1, outputs=OUTPUTS, timeout_s=120))
+        first = next(it)
+        ids = [s for s, p in zip(first["sample_ids"], first["padding"].tolist()) if not p]
+        os.kill(b.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(HEDGE_S + 8)  # the loop holds its step: the pass's thread turns on
+            gaps, t = [], time.monotonic()
+            for batch in it:
+                gaps.append(time.monotonic() - t)
+                t = time.monotonic()
+                ids += [s for s, p in zip(batch["sample_ids"], batch["padding"].tolist()) if not p]
+        finally:
+            os.kill(b.proc.pid, signal.SIGCONT)
+        assert sorted(ids) == want and len(ids) == len(set(ids))
+        assert max(gaps) < HEDGE_S / 2, gaps
+    assert not [th for th in threading.enumerate() if th.name == "v2v-fleet-pass"]

@@ -431,8 +431,25 @@ class Pass:
         self.head_since = time.monotonic() if now is None else now
         return head, out, arrays
 
+    def turn(self, todo, fetch_of, now: float, hold: bool = False) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+        """The pass's part of a turn (``Fleet.turn``): the window filled from ``todo`` and asked
+        for, then the head's rows (:meth:`head_rows`) and the quiet hosts pinged (:meth:`ping`),
+        else, the head not known or held (``hold``: the loop holds the steps it may), what it
+        waits on rescued (:meth:`rescue`). Returns the head, or None.
+
+        Raises:
+            PlanServerError: as :meth:`ask` and :meth:`head_rows`."""
+        self.fill(todo, fetch_of, now)
+        self.ask_window(now)
+        head = None if hold else self.head_rows(now)
+        if head is None:
+            self.rescue(now)
+        else:
+            self.ping(now)
+        return head
+
     def wanted(self, now: float) -> None:
-        """The reader wants the head's rows from ``now`` on (its trainer took the last step):
+        """The reader wants the head's rows from ``now`` on (its loop took a step):
         the head waits on the hosts from then, not while the trainer ran (:meth:`reach`, the
         copies of :func:`steal`)."""
         self.head_since = max(self.head_since, now)

@@ -46,6 +46,9 @@ them again.
 from __future__ import annotations
 
 import logging
+import queue
+import socket
+import threading
 import time
 from collections import ChainMap
 from dataclasses import replace
@@ -60,11 +63,11 @@ from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, Fetch, Make, ManifestAsk, M
 from v2v_wire.protocol import MAX_HEADER_BYTES
 
 from .endpoints import auto_compression, resolve_endpoints
-from .fetch import BrokenPeer, Link, PlanServerError, reply_limit, wait_readable
+from .fetch import POLL_S, BrokenPeer, Link, PlanServerError, ReadStopped, check_stopped, reply_limit, stopped_by, wait_readable
 from .fleet_pass import HOST_REFUSALS, STEAL_S, Pass, ReaderMemory
 
 __all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fleet", "listing_diff",
-           "manifest_diff", "alias_of", "HEDGE_S", "RESOLVE_S", "ASK_NEXT_S"]
+           "manifest_diff", "alias_of", "HEDGE_S", "RESOLVE_S", "ASK_NEXT_S", "HELD_STEPS"]
 
 log = logging.getLogger("v2v.client")
 
@@ -76,6 +79,12 @@ RESOLVE_S = 5.0
 #: unreachable one never, and every pass (each epoch, each DataLoader worker) asks, so a gone
 #: host costs this, not ``timeout_s``.
 ASK_NEXT_S = 2.0
+#: Steps a pass's thread holds read ahead of the loop (``Fleet.fetch_all``) while it goes on
+#: turning the pass: asking ahead, rescuing what the next step waits on, pinging. A pass turned
+#: only when its loop asks for a step stops all of that while the job waits on another rank or
+#: the loop holds the batches it read ahead (``ReadAhead``, a DataLoader's prefetch): 128
+#: simulated hosts, 8 readers, sigma 0.2 (``harness.fleet_sim``, docs/scaling.md).
+HELD_STEPS = 1
 
 
 def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
@@ -278,13 +287,24 @@ class Fleet:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
         self.read: Optional[Pass] = None  # the pass of fetch_all
+        self._served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the step last yielded, and who made it
+        # the loop's take of a step wakes the pass's thread out of its wait on the hosts (take)
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self.poller.register(self._wake_r, zmq.POLLIN)
+        self._turning: Optional[Tuple[threading.Thread, threading.Event]] = None
+        self._taken = 0  # what the loop took of the pass's thread (counted by the loop alone)
 
     def __enter__(self) -> "Fleet":
         return self
 
     def __exit__(self, *exc) -> None:
+        self._stop_turning()
         for link in self.links.values():
             link.__exit__(*exc)
+        self._wake_r.close()
+        self._wake_w.close()
 
     # ------------------------------------------------------------------ the fleet
     def _link(self, ep: str) -> Link:
@@ -484,24 +504,21 @@ class Fleet:
         self.read = read
         return read
 
-    def turn(self, read: Pass, todo, fetch_of, now: float) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+    def turn(self, read: Pass, todo, fetch_of, now: float,
+             hold: bool = False) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
         """One turn of the pass's loop: the hosts listened to (``Router.listen``: a loop held
         since its last turn took no host for silent), the endpoint resolved again (at most every
         :data:`RESOLVE_S`), the window filled from ``todo`` and asked for, the head's rows
         (``Pass.head_rows``) once known and the quiet hosts pinged (``Pass.ping``), else what it
         waits on rescued (``Pass.rescue``, pings included); what the pass asked is sent.
+        ``hold``: the loop holds :data:`HELD_STEPS` steps it has not taken, so the head is not
+        taken out (None) and what it waits on is rescued all the same.
 
         Raises:
             PlanMismatch, PlanServerError: as :meth:`check_hosts_left`; as ``Pass.ask``."""
         self.router.listen(now)
         self._resolve(now)
-        read.fill(todo, fetch_of, now)
-        read.ask_window(now)
-        head = read.head_rows(now)
-        if head is None:
-            read.rescue(now)
-        else:
-            read.ping(now)
+        head = read.turn(todo, fetch_of, now, hold)
         self.send_out(read)
         if head is None:
             self.check_hosts_left(read)
@@ -552,14 +569,21 @@ class Fleet:
         raise PlanServerError(f"{self.endpoint}: no host left serving the plan: {self.left_out_line()}")
 
     def take(self, read: Pass, heard: float) -> float:
-        """Wait up to half a second for the hosts' answers to pass ``read`` and take them
-        (:meth:`receive`); returns when a host was last heard (``heard``, or now). A peer that
+        """Wait up to half a second for the hosts' answers to pass ``read``, or until the loop
+        takes a step, and take them (:meth:`receive`); returns when a host was last heard
+        (``heard``, or now). A peer that
         sends what cannot be read (``fetch.BrokenPeer``) is left out (:meth:`leave_out`) and the
         others' answers taken.
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
         ready = dict(wait_readable(self.poller.poll, min(read.retry_s, 0.5)))
+        if ready.pop(self._wake_r, None) is not None:  # the loop took a step: no host's word
+            while True:
+                try:
+                    self._wake_r.recv(4096)
+                except BlockingIOError:
+                    break
         if not ready:
             if time.monotonic() - heard > self.timeout_s:
                 late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})
@@ -581,12 +605,18 @@ class Fleet:
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order: the rows of ``fetch_of(0,
         step)``'s positions, each made by the host its video is routed to (module docstring;
-        one pass's state and decisions: ``fleet_pass.Pass``, turned by :meth:`turn`).
+        one pass's state and decisions: ``fleet_pass.Pass``). The manifest is read here; then a
+        thread of the pass's own turns it (:meth:`turn`, :meth:`take`: it alone uses the sockets
+        until the generator is closed), holding up to :data:`HELD_STEPS` steps the loop has not
+        taken and turning on while it holds them. Closing the generator (or the read being
+        stopped, ``fetch.stopped_by``) stops the thread and waits for it.
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the reader waited.
             PlanMismatch: no host serves the pass's plan any more (:meth:`no_host_left`).
             PlanServerError: every host left out, or a host sent what cannot be read.
+            ReadStopped: this thread's read was stopped.
+        Each raised in the loop's thread after the steps held before it, the same object.
         """
         todo = iter(steps)
         first = next(todo, None)
@@ -594,18 +624,81 @@ class Fleet:
             return
         f0 = fetch_of(0, first)
         manifest = self._manifest(f0.epoch)
-        heard = time.monotonic()
-        read = self.pass_for(manifest, f0, prefetch, retry_s, heard)
+        read = self.pass_for(manifest, f0, prefetch, retry_s, time.monotonic())
         read.add(first, f0)
-        while read.window:
-            head = self.turn(read, todo, fetch_of, time.monotonic())
-            if head is not None:
-                yield head
-                read.wanted(time.monotonic())
+        handed: "queue.Queue" = queue.Queue(maxsize=HELD_STEPS)
+        stop = threading.Event()
+        thread = threading.Thread(target=self._turn_pass, args=(read, todo, fetch_of, handed, stop),
+                                  name="v2v-fleet-pass", daemon=True)
+        self._turning = (thread, stop)
+        thread.start()
+        try:
+            while True:
+                try:
+                    kind, value = handed.get(timeout=POLL_S)
+                except queue.Empty:
+                    check_stopped()
+                    continue
+                if kind == "end":
+                    return
+                if kind == "error":
+                    raise value
+                self._taken += 1
+                self._wake()
+                step, rows, arrays, served = value
+                self._served = (rows, served)
+                yield step, rows, arrays
+        finally:
+            self._stop_turning()
+
+    def _turn_pass(self, read: Pass, todo, fetch_of, handed: "queue.Queue", stop: threading.Event) -> None:
+        """The pass's thread: turned at each answer of the hosts, each step the loop takes, or
+        every half second, until its window is read; each head handed on with the hosts that
+        made its rows, then ``("end", None)``, or ``("error", exception)``."""
+        try:
+            with stopped_by(stop):
+                heard = time.monotonic()
+                taken = self._taken
+                while read.window:
+                    if self._taken != taken:  # the loop took a step: it wants the next from now
+                        taken = self._taken
+                        read.wanted(time.monotonic())
+                    head = self.turn(read, todo, fetch_of, time.monotonic(), hold=handed.full())
+                    if head is not None:
+                        handed.put(("step", (*head, dict(read.last_served[1]))))  # the loop alone takes: room
+                        continue
+                    heard = self.take(read, heard)
+            item = ("end", None)
+        except ReadStopped:
+            return
+        except BaseException as e:  # raised in the loop's thread, the same object (type and traceback kept)
+            item = ("error", e)
+        while not stop.is_set():
+            try:
+                handed.put(item, timeout=POLL_S)
+                return
+            except queue.Full:
                 continue
-            heard = self.take(read, heard)
+
+    def _wake(self) -> None:
+        """Wake the pass's thread out of its wait on the hosts (:meth:`take`)."""
+        try:
+            self._wake_w.send(b"\0")
+        except (BlockingIOError, OSError):
+            pass  # a wake already waiting, or the fleet closed
+
+    def _stop_turning(self) -> None:
+        """Stop the pass's thread, if one runs, and wait for it (within ``fetch.POLL_S``: its
+        waits on the hosts look at its stop that often)."""
+        if self._turning is not None:
+            thread, stop = self._turning
+            stop.set()
+            self._wake()
+            if thread is not threading.current_thread():
+                thread.join()
+            self._turning = None
 
     def served(self, rows: Rows) -> Dict[str, int]:
         """{host endpoint: rows of ``rows`` (the step last yielded) holding a sample it made}."""
-        last, served = self.read.last_served if self.read is not None else (None, {})
+        last, served = self._served
         return dict(served) if rows is last else {}
