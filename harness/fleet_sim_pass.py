@@ -15,8 +15,9 @@ nothing until its stall ends, as a paused process reads its socket only when it 
 Messages take no time on the way.
 
 The job: ``ranks`` readers, each reading its slice of every step (as data-parallel ranks read
-their batches), each up to ``READ_AHEAD`` steps ahead of the slowest (``ReadAhead``'s batches
-held ready); the trainer takes a step as soon as every rank has it. Pure and seeded: no
+their batches), each up to ``READ_AHEAD`` + ``HELD_STEPS`` steps ahead of the slowest
+(``ReadAhead``'s batches held ready, and the pass's thread's), its pass turning on while it
+holds them; the trainer takes a step as soon as every rank has it. Pure and seeded: no
 socket, no clock. ``python -m harness.fleet_sim`` prints its figures as the routed row, beside
 the static split's.
 """
@@ -33,6 +34,7 @@ import numpy as np
 from harness.fleet_sim import Fleet, Result, _Stalls, _speeds, corpus, said_rate
 from v2v_client import V2VStreamDataset
 from v2v_client.fleet_pass import STEAL_S, Pass, ReaderMemory
+from v2v_client.fleet_read import HELD_STEPS
 from v2v_client.read_ahead import READ_AHEAD
 from v2v_server.delivery.plan_orders import TOLD_S
 from v2v_wire.fleet import RateMeter, Router
@@ -201,6 +203,9 @@ class PassWorld:
             return
         h.waiting.setdefault(msg.video, []).append((rank, msg.request, ords))
         h.queued += len(ords)
+        if msg.video in h.running:
+            self.answer_at(h, msg.video, rank, msg.request, ords)
+            return
         heapq.heappush(h.queue, (msg.position, self.seq, msg.video))
         self.seq += 1
         self.start_work(h)
@@ -216,6 +221,31 @@ class PassWorld:
             end = self.stalls.finish(h.k, self.now, self.slots[video] / self.speeds[h.k])
             h.running[video] = [self.now, end, 0.0, 0.0]
             self.push(end, "done", h.k, video)
+            for r, req, ords in list(h.waiting[video]):
+                self.answer_at(h, video, r, req, ords)
+
+    def answer_at(self, h: _Host, video: str, rank: int, request: int, ords: Tuple[int, ...]) -> None:
+        """A make of ``video``, which a worker of ``h`` decodes, answered once its last sample is
+        made (``PlanScheduler.answer``: a worker sends each sample as it makes it, its windows in
+        order, evenly over the decode's work): now if made, else at that time (``part``)."""
+        start = h.running[video][0]
+        at = self.stalls.finish(h.k, start, (max(ords) + 1) / self.speeds[h.k])  # a worker's seconds a sample
+        if at <= self.now:
+            self.part(h.k, (video, rank, request))
+        else:
+            self.push(at, "part", h.k, (video, rank, request))
+
+    def part(self, k: int, make: Tuple[str, int, int]) -> None:
+        """Host ``k`` made the last sample make ``make`` (video, rank, request) asks: answered,
+        unless answered or withdrawn before."""
+        h, (video, rank, request) = self.hosts[k], make
+        makes = h.waiting.get(video, [])
+        for i, (r, req, ords) in enumerate(makes):
+            if (r, req) == (rank, request):
+                del makes[i]
+                h.queued -= len(ords)
+                self.answer(h, rank, request, video, ords)
+                return
 
     def done(self, k: int, video: str) -> None:
         """Host ``k`` made ``video``: counted by its meter, kept, and every make waiting on it answered."""
@@ -238,29 +268,25 @@ class PassWorld:
 
     # ------------------------------------------------------------------ readers
     def turn(self, rd: _Reader) -> None:
-        """Rank ``rd``'s answers taken and its pass turned until its head waits (``Fleet.turn``),
-        or until it holds ``READ_AHEAD`` steps the job has not taken."""
-        read = rd.read
-        read.router.listen(self.t0 + self.now)
+        """Rank ``rd``'s answers taken and its pass turned (``Fleet.turn``) until its head waits,
+        or, once it holds ``READ_AHEAD`` + ``HELD_STEPS`` steps the job has not taken (the
+        loop's and the pass's thread's), turned holding them (what the head waits on rescued);
+        turned again at the next answer, or after half a second."""
+        read, at = rd.read, self.t0 + self.now
+        read.router.listen(at)
         for ep, msg, frames in rd.inbox:
-            read.receive(ep, msg, frames, self.t0 + self.now)
+            read.receive(ep, msg, frames, at)
             self.send(rd)
         rd.inbox = []
-        at = self.t0 + self.now
-        while read.window and rd.yielded - self.taken() < READ_AHEAD:
-            read.fill(rd.todo, lambda _, s, r=rd.rank: self.fetch_of(r, s), at)
-            read.ask_window(at)
-            head = read.head_rows(at)
+        while read.window:
+            hold = rd.yielded - self.taken() >= READ_AHEAD + HELD_STEPS
+            head = read.turn(rd.todo, lambda _, s, r=rd.rank: self.fetch_of(r, s), at, hold)
+            self.send(rd)
             if head is None:
-                read.rescue(at)
-                self.send(rd)
                 self.wake(rd, self.now + TAKE_S)
                 return
-            read.ping(at)
-            self.send(rd)
             self.check(rd, *head[:2])
             rd.yielded += 1
-            read.wanted(at)
             self.job()
 
     def check(self, rd: _Reader, step: int, rows: Rows) -> None:
@@ -284,13 +310,18 @@ class PassWorld:
         return min(rd.yielded for rd in self.readers)
 
     def job(self) -> None:
-        """The trainer takes each step every rank has: ranks held back by it turn again."""
+        """The trainer takes each step every rank has; a rank's loop then takes a step its pass
+        held (``ReadAhead`` holds ``READ_AHEAD``), which wants the next from now
+        (``Pass.wanted``) and turns at once (``Fleet.fetch_all`` wakes its thread)."""
         taken = self.taken()
         while len(self.step_times) < taken:
-            self.step_times.append((min(self.samples, len(self.step_times) * self.f.step + self.f.step), self.now))
+            before = len(self.step_times)
+            self.step_times.append((min(self.samples, before * self.f.step + self.f.step), self.now))
             for rd in self.readers:
-                if rd.read.window and rd.yielded - taken < READ_AHEAD and rd.wake_at > self.now:
-                    self.wake(rd, self.now)
+                if rd.yielded > before + READ_AHEAD:  # the loop's room took one the pass held
+                    rd.read.wanted(self.t0 + self.now)
+                    if rd.read.window and rd.wake_at > self.now:
+                        self.wake(rd, self.now)
 
     def send(self, rd: _Reader) -> None:
         """Rank ``rd``'s outbox, each message to its host now (``Fleet.send_out``)."""
@@ -316,6 +347,8 @@ class PassWorld:
                     self.turn(rd)
             elif kind == "done":
                 self.done(a, b)
+            elif kind == "part":
+                self.part(a, b)
             else:
                 self.host_message(a, *b)
         end = self.now
