@@ -639,8 +639,10 @@ def steal(read: "Pass", now: float, late: bool) -> None:
     """Copies of the videos the head waits on, the samples its positions hold or the windows
     that decide them (the first copy's answer wins), once the head has waited :data:`STEAL_S`
     (``late``), of the host ``Router.copy`` picks, where it goes first (its position is the
-    fleet's earliest). A slow host's videos stop gating the fleet, at the cost of a decode
-    where a host would otherwise idle or where the step would wait."""
+    fleet's earliest), or where the hosts asked are late by their own measure (the wait
+    counted from the ask, or from when the head began to wait if later). A slow host's videos
+    stop gating the fleet, at the cost of a decode where a host would otherwise idle or where
+    the step would wait."""
     if not late:
         return
     start, stop = read.spans[read.window[0]]
@@ -659,7 +661,8 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
+        waited = now - max(read.head_since, min(at for _, _, at in v.flight.values()))
         h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused,
-                             read.video_samples(video))
+                             read.video_samples(video), waited)
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked

@@ -18,6 +18,10 @@ one plan a single server serves, each video made by the host the reader routes i
   its later samples go to the same host while it answers. A host with this reader's work that
   answered nothing, not even a ping, for ``hedge_s`` has its videos asked of their next hosts
   too; the first answer wins.
+* **The pass turns in a thread of its own** (``Fleet.fetch_all``): the loop takes its steps from
+  it, and while the loop holds them (a step's work, ``ReadAhead``'s batches, a DataLoader's
+  prefetch, the job waiting on another rank) the pass goes on asking ahead, pinging its hosts
+  and rescuing what its next step waits on.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
   next hosts of their rankings, a host of the fleet serving another plan is named once and left
