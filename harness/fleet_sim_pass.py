@@ -1,15 +1,17 @@
 """The simulator's fleet (``harness.fleet_sim``) read by the client's own reader: each rank a real
 ``v2v_client.fleet_pass.Pass`` with its own ``v2v_wire.fleet.Router`` and ``ReaderMemory``, turned
-as ``fleet_read.Fleet.fetch_all`` turns it (fill, ask the window, the head's rows and the quiet
-hosts pinged, else rescue; the hosts' answers taken as they come, or after half a second), its ``Make``, ``PlanAsk`` and
-``Withdraw`` messages taken by a model of the hosts, its rows tiny arrays in real ``Rows``.
+as ``fleet_read.Fleet.fetch_all``'s thread turns it (``Pass.turn``: fill, ask the window, the
+head's rows and the quiet hosts pinged, else rescue; the hosts' answers taken as they come, or
+after half a second), its ``Make``, ``PlanAsk`` and ``Withdraw`` messages taken by a model of
+the hosts, its rows tiny arrays in real ``Rows``.
 
 The hosts are ``fleet_sim``'s (the same corpus, speeds, workers and stalls, each host measuring
 its own capacity as a server does) with a server's side of the protocol: a make with a route is
 placed as ``plan_orders.Orders.place`` places it (made here, or ``Moved`` to where a reader
 placed it first; a move takes every reader's make of the video waiting here along), else queued
-by its ``position``; a worker decodes a whole video and every make waiting on it is answered;
-a host keeps what it made and answers a later make of it at once; a ``Withdraw`` drops a make
+by its ``position``; a worker decodes a whole video, making its samples in window order evenly
+over the decode, and a make is answered once the samples it asks are made (``part``); a host
+keeps what it made and answers a later make of it at once; a ``Withdraw`` drops a make
 still waiting; a ``PlanAsk`` is answered with the host's rate and queue. A stalled host takes
 nothing until its stall ends, as a paused process reads its socket only when it runs again.
 Messages take no time on the way.

@@ -575,9 +575,8 @@ class Fleet:
     def take(self, read: Pass, heard: float) -> float:
         """Wait up to half a second for the hosts' answers to pass ``read``, or until the loop
         takes a step, and take them (:meth:`receive`); returns when a host was last heard
-        (``heard``, or now). A peer that
-        sends what cannot be read (``fetch.BrokenPeer``) is left out (:meth:`leave_out`) and the
-        others' answers taken.
+        (``heard``, or now). A peer that sends what cannot be read (``fetch.BrokenPeer``) is left
+        out (:meth:`leave_out`) and the others' answers taken.
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
