@@ -296,7 +296,7 @@ class Fleet:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self.poller.register(self._wake_r, zmq.POLLIN)
+        self.poller.register(self._wake_r.fileno(), zmq.POLLIN)  # a poll names it by its descriptor
         self._turning: Optional[Tuple[threading.Thread, threading.Event]] = None
         self._taken = 0  # what the loop took of the pass's thread (counted by the loop alone)
 
@@ -581,7 +581,7 @@ class Fleet:
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
         ready = dict(wait_readable(self.poller.poll, min(read.retry_s, 0.5)))
-        if ready.pop(self._wake_r, None) is not None:  # the loop took a step: no host's word
+        if ready.pop(self._wake_r.fileno(), None) is not None:  # the loop took a step: no host's word
             while True:
                 try:
                     self._wake_r.recv(4096)
