@@ -290,7 +290,6 @@ class Fleet:
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
-        self.read: Optional[Pass] = None  # the pass of fetch_all
         self._served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the step last yielded, and who made it
         # the loop's take of a step wakes the pass's thread out of its wait on the hosts (take)
         self._wake_r, self._wake_w = socket.socketpair()
@@ -503,10 +502,8 @@ class Fleet:
     def pass_for(self, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float, now: float) -> Pass:
         """A pass over this fleet of the epoch of ``first`` (its first step's fetch, added), with
         the fleet's router, the reader's memory and what it knows of its hosts."""
-        read = Pass(self.router, self.memory, manifest, self.plan, first, prefetch, retry_s, str(self.endpoint),
+        return Pass(self.router, self.memory, manifest, self.plan, first, prefetch, retry_s, str(self.endpoint),
                     self.withdraws, ChainMap(self.out_for_pass, self.memory.left_out), self.stream, self.ahead, now)
-        self.read = read
-        return read
 
     def turn(self, read: Pass, todo, fetch_of, now: float,
              hold: bool = False) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:

@@ -669,7 +669,7 @@ class Router:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
         clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
-        late = hosts and all(waited > self.finish(h, samples, position, now, video_samples) for h in hosts)
+        late = bool(hosts) and all(waited > self.finish(h, samples, position, now, video_samples) for h in hosts)
         if not late and self.finish(pick, samples, position, now, video_samples) >= clears:
             return None
         self.ask(pick, epoch, video, samples, now, position)
