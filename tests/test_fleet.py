@@ -396,6 +396,30 @@ def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked
     assert not r.suspect(owner, 12.0)
 
 
+def test_a_host_that_leaves_a_ping_unanswered_is_routed_nothing_new_and_keeps_what_it_was_asked():
+    """A paused host (stopped, starved) answers no ping; routed to until it is suspect, it took
+    hedge_s of new work the job then waited on. One that left a ping unanswered for QUIET_S is
+    routed no new video while another answers, and its queue is neither hedged nor copied."""
+    from v2v_wire.fleet import QUIET_S
+
+    r = Router(HOSTS[:3], hedge_s=10.0)
+    for h in HOSTS[:3]:
+        r.heard(h, 0.0, rate=4.0, queued=40)  # every host busy for other readers: none is free
+    owner = rank_hosts(VIDEOS[0], HOSTS[:3])[0]
+    mine = [v for v in VIDEOS if rank_hosts(v, HOSTS[:3])[0] == owner][:4]
+    assert r.route(0, mine[0], 2, 0.0) == owner
+    assert r.pings(2.4) == [] and r.pings(2.5) == [owner]  # silent a ping interval: pinged
+    assert r.route(0, mine[1], 2, 2.5 + QUIET_S / 2) == owner  # an answer may be on its way
+    t = 2.5 + QUIET_S
+    assert r.quiet(owner, t) and not r.suspect(owner, t)
+    assert r.route(0, mine[2], 2, t) != owner
+    assert r.hedges([(0, mine[0], 2)], t) == []  # what it was asked stays with it
+    assert r.copy(0, mine[0], 2, t, [owner], waited=t) is None
+    for h in HOSTS[:3]:  # it answers again, and the others say their queues
+        r.heard(h, t + 0.1, queued=40 + r.hosts[h].load)
+    assert not r.quiet(owner, t + 0.1) and r.route(0, mine[3], 2, t + 0.1) == owner
+
+
 def test_a_silent_hosts_video_needed_later_stays_with_it_until_it_comes_due():
     v = VIDEOS[0]
     owner, nxt = rank_hosts(v, HOSTS[:3])[:2]
