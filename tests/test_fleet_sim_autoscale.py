@@ -99,8 +99,9 @@ def scrape(port: int) -> dict:
 @pytest.mark.timeout(300)
 def test_a_host_exports_the_samples_asked_of_it_and_the_capacity_it_said(tmp_path, videos):
     """The series deploy/prometheus-adapter's rule divides: ``v2v_samples_asked_total`` counts
-    the samples every make named (made already or not), ``v2v_capacity_samples_per_second`` is
-    the capacity the host said in its last answer, absent before it said one."""
+    the samples every make named (made already or not; a make asked again while it waits, a
+    reader's retry, counted once), ``v2v_capacity_samples_per_second`` is the capacity the host
+    said in its last answer, absent before it said one."""
     from harness.serve import ServeProcess, free_port
     from v2v_client.fetch import Link
     from v2v_wire.plan_messages import Make, Rows
@@ -115,8 +116,13 @@ def test_a_host_exports_the_samples_asked_of_it_and_the_capacity_it_said(tmp_pat
         assert before["v2v_samples_asked_total"] == 0 and "v2v_capacity_samples_per_second" not in before
         video = want[0].split("#")[0]
         ordinals = sorted(int(s.split("#")[1]) for s in want if s.split("#")[0] == video)
-        asked, last = 0, None
-        for request, ask in enumerate((ordinals[:1], ordinals, ordinals[-1:]), 1):  # the last two: made already
+        link._send(Make(1, 0, video, tuple(ordinals[:1]), OUTPUTS, plan).to_wire())
+        link._send(Make(2, 0, video, tuple(ordinals[:1]), OUTPUTS, plan).to_wire())  # asked again as it waits
+        for _ in range(2):
+            got = link._recv(time.monotonic() + 60)
+            assert got is not None and isinstance(got[0], Rows)
+        asked, last = 1, None
+        for request, ask in enumerate((ordinals, ordinals[-1:]), 3):  # made already
             link._send(Make(request, 0, video, tuple(ask), OUTPUTS, plan).to_wire())
             got = link._recv(time.monotonic() + 60)
             assert got is not None and isinstance(got[0], Rows)

@@ -49,8 +49,12 @@ class Orders:
         self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make of it was last answered
         self.placed: Dict[Tuple[int, str], Tuple[str, float]] = {}  # (epoch, video) -> (host, when) (place)
 
-    def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> None:
+    def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> int:
         """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
+        Returns the samples it names that no make of the same client waiting here names (of the
+        same epoch and video): a make asked again (a reader's retry after ``retry_s``, its reply
+        lost or late) is not new demand (``v2v_samples_asked_total``, which an HPA sizes the
+        fleet on).
 
         Raises:
             ValueError: a video not in the manifest, or an ordinal past its samples where they are
@@ -61,7 +65,10 @@ class Orders:
         if order.ordinals is not None and n is not None and max(order.ordinals) >= n:
             raise ValueError(f"make: sample {max(order.ordinals)} of {order.video!r:.200}, which gives {n} "
                              "sample(s) an epoch")
+        named = {i for o in self.waiting if o.client == order.client and o.epoch == order.epoch
+                 and o.video == order.video for i in o.ordinals or ()}
         self.waiting.append(order)
+        return sum(1 for i in order.ordinals or () if i not in named)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s makes (it left)."""

@@ -519,22 +519,24 @@ class PlanScheduler:
         self.heads.fetched(client, epoch, stop, now, start)
 
     def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
-             now: float, outputs: Optional[Sequence[str]] = None, position: int = 0) -> None:
+             now: float, outputs: Optional[Sequence[str]] = None, position: int = 0) -> int:
         """Queue a make of the samples ``ordinals`` of ``video`` in ``epoch`` (None: its windows
         only, answered once its slots are known, from the corpus index or its decode), asked at
         ``now``: a reader of a fleet routes each video to a host (``v2v_wire.fleet``). The videos
         made for are decoded after those pending fetches wait on, in the order of (epoch,
         ``position``: the first position needing the video), then of arrival. Outputs as :meth:`fetch`.
+        Returns the samples newly asked (``Orders.add``: not a retry's).
 
         Raises:
             ValueError: a video not in the manifest, or an ordinal past its samples where they
                 are known (naming them); an output not offered.
         """
-        self.orders.add(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals), position),
-                        self.slots.samples)
+        new = self.orders.add(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals),
+                                    position), self.slots.samples)
         if self.making.ask(outputs):
             self.store, self.fetched = OrderedDict(), set()
         self.fetched_at[epoch] = now
+        return new
 
     def place(self, epoch: int, video: str, route: Optional[str], now: float,
               move: bool = False) -> Tuple[Optional[str], List[Order]]:

@@ -11,7 +11,7 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 
 * counters: ``v2v_samples_made_total``, ``v2v_samples_sent_total``, ``v2v_batches_sent_total``,
   ``v2v_sent_bytes_total``, ``v2v_samples_asked_total`` (the samples fleet readers' makes named,
-  made already or not: its rate over ``v2v_capacity_samples_per_second`` is the share of the
+  made already or not, a make asked again not counted again: its rate over ``v2v_capacity_samples_per_second`` is the share of the
   host's capacity a job asks of it, what deploy/k8s-autoscale sizes a fleet by),
   ``v2v_workers_restarted_total``, ``v2v_files_skipped_total``, ``v2v_bad_messages_total``,
   ``v2v_worker_busy_seconds_total{stage}`` for stage in decode, simulate, flow, serialize,
@@ -86,8 +86,8 @@ class ServerMetrics:
 
         self.samples_made = counter("v2v_samples_made", "Samples received from workers")
         self.samples_sent = counter("v2v_samples_sent", "Samples sent to clients (re-sends included)")
-        self.samples_asked = counter("v2v_samples_asked", "Samples fleet readers' makes named, made already or not "
-                                     "(rate over v2v_capacity_samples_per_second: the share of the host's capacity "
+        self.samples_asked = counter("v2v_samples_asked", "Samples fleet readers' makes named, made already or not, "
+                                     "a make asked again not counted again (rate over v2v_capacity_samples_per_second: the share of the host's capacity "
                                      "a job asks of it)")
         self.batches_sent = counter("v2v_batches_sent", "Batches sent to clients (re-sends included)")
         self.bytes_sent = counter("v2v_sent_bytes", "Array bytes sent to clients")
@@ -142,8 +142,9 @@ class ServerMetrics:
             self.sample_stats.observe(params)
 
     def on_make(self, samples: int) -> None:
-        """A reader's make named ``samples`` samples (a make of a video's windows only: 0; its
-        samples are named by the makes that follow)."""
+        """A reader's make named ``samples`` samples it had not asked of this host already (a
+        make of a video's windows only, or one placed elsewhere: 0; a retry counts only what its
+        make before did not name)."""
         self.samples_asked.inc(samples)
 
     def on_batch_sent(self, nsamples: int, nbytes: int) -> None:

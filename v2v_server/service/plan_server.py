@@ -229,11 +229,10 @@ class PlanServer:
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         if isinstance(msg, Make):
-            made, answers = take_make(self.scheduler, (ident, msg.outputs, msg.compression), msg, now)
+            new, answers = take_make(self.scheduler, (ident, msg.outputs, msg.compression), msg, now)
             for client, answer in answers:
                 self._send(client[0], answer.to_wire())
-            if made:
-                self.metrics.on_make(len(msg.ordinals or ()))
+            self.metrics.on_make(new)
             return
         self.scheduler.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
                              msg.outputs)
@@ -337,17 +336,19 @@ def take_make(scheduler: PlanScheduler, client: Hashable, msg: Make, now: float
     names what the manifest does not hold).
 
     Returns:
-        ``(queued here, [(client, answer)])``: the answers to send now, ``Moved`` or ``Refused``,
-        each to the client (its first item the connection) whose make it answers."""
+        ``(samples newly asked here, [(client, answer)])``: the samples the make queued here that
+        no make of the client waiting here named (``Orders.add``; 0 where it was placed
+        elsewhere or refused), and the answers to send now, ``Moved`` or ``Refused``, each to
+        the client (its first item the connection) whose make it answers."""
     to, moved = scheduler.place(msg.epoch, msg.video, msg.route, now, msg.move)
     answers: List[Tuple[Hashable, object]] = [(o.client, Moved(o.request, to)) for o in moved]
     if to is not None:  # another reader placed it there first: made once
-        return False, answers + [(client, Moved(msg.request, to))]
+        return 0, answers + [(client, Moved(msg.request, to))]
     try:
-        scheduler.make(client, msg.request, msg.epoch, msg.video, msg.ordinals, now, msg.outputs, msg.position)
+        new = scheduler.make(client, msg.request, msg.epoch, msg.video, msg.ordinals, now, msg.outputs, msg.position)
     except ValueError as e:
-        return False, answers + [(client, Refused(msg.request, str(e), "make"))]
-    return True, answers
+        return 0, answers + [(client, Refused(msg.request, str(e), "make"))]
+    return new, answers
 
 
 def _wire_row(output: str, c: ServeConfig) -> Tuple[tuple, str]:
