@@ -200,6 +200,14 @@ class PassWorld:
             self.to_reader(rank, h.name, Moved(msg.request, to))
             return
         ords = tuple(msg.ordinals) if msg.ordinals is not None else ()
+        kept = []
+        for r, req, asked in h.waiting.get(msg.video, ()):  # ``Orders.add``: a retry replaces the make it repeats
+            if r == rank and set(asked) <= set(ords):
+                h.queued -= len(asked)
+            else:
+                kept.append((r, req, asked))
+        if msg.video in h.waiting:
+            h.waiting[msg.video] = kept
         if msg.video in h.made or not ords:
             self.answer(h, rank, msg.request, msg.video, ords)
             return

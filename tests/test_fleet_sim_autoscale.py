@@ -100,7 +100,7 @@ def scrape(port: int) -> dict:
 def test_a_host_exports_the_samples_asked_of_it_and_the_capacity_it_said(tmp_path, videos):
     """The series deploy/prometheus-adapter's rule divides: ``v2v_samples_asked_total`` counts
     the samples every make named (made already or not; a make asked again while it waits, a
-    reader's retry, counted once), ``v2v_capacity_samples_per_second`` is the capacity the host
+    reader's retry, replaces it: answered and counted once), ``v2v_capacity_samples_per_second`` is the capacity the host
     said in its last answer, absent before it said one."""
     from harness.serve import ServeProcess, free_port
     from v2v_client.fetch import Link
@@ -118,9 +118,9 @@ def test_a_host_exports_the_samples_asked_of_it_and_the_capacity_it_said(tmp_pat
         ordinals = sorted(int(s.split("#")[1]) for s in want if s.split("#")[0] == video)
         link._send(Make(1, 0, video, tuple(ordinals[:1]), OUTPUTS, plan).to_wire())
         link._send(Make(2, 0, video, tuple(ordinals[:1]), OUTPUTS, plan).to_wire())  # asked again as it waits
-        for _ in range(2):
-            got = link._recv(time.monotonic() + 60)
-            assert got is not None and isinstance(got[0], Rows)
+        got = link._recv(time.monotonic() + 60)
+        assert got is not None and isinstance(got[0], Rows) and got[0].request == 2  # the retry replaced make 1
+        assert link._recv(time.monotonic() + 1) is None  # its rows sent once
         asked, last = 1, None
         for request, ask in enumerate((ordinals, ordinals[-1:]), 3):  # made already
             link._send(Make(request, 0, video, tuple(ask), OUTPUTS, plan).to_wire())

@@ -282,14 +282,18 @@ def test_readers_of_as_many_epochs_as_the_kept_plans_rebuild_none_to_decode_ahea
 
 def test_a_make_asked_again_while_it_waits_is_no_new_demand():
     """A reader asks a make again when it has waited ``retry_s`` for it (a lost or late reply);
-    a host whose queue holds it longer sees it twice. What ``v2v_samples_asked_total`` counts
-    (the demand an HPA sizes the fleet on) is the samples no make of that reader waiting here
-    names already: the retry adds none, another reader's make of the same samples adds them."""
+    a host whose queue holds it longer sees it twice. The retry replaces the make it repeats
+    (the reader awaits the new one only: rows sent once, the queue a host says counted once),
+    and what ``v2v_samples_asked_total`` counts (the demand an HPA sizes the fleet on) is the
+    samples no make of that reader waiting here names already: the retry adds none, another
+    reader's make of the same samples adds them."""
     m = Manifest.of({"a.mp4": 4, "b.mp4": 2})
     scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=0)
     assert scheduler.make("r", 1, 0, "a.mp4", (0, 1), 0.0) == 2
     assert scheduler.make("r", 2, 0, "a.mp4", (0, 1), 10.0) == 0  # its retry
+    assert [o.request for o in scheduler.orders.waiting] == [2] and scheduler.queued() == 2
     assert scheduler.make("r", 3, 0, "a.mp4", (1, 2), 11.0) == 1  # one sample new
+    assert [o.request for o in scheduler.orders.waiting] == [2, 3]  # make 2 asks sample 0 too: awaited still
     assert scheduler.make("s", 1, 0, "a.mp4", (0, 1), 11.0) == 2  # another reader's
     assert scheduler.make("r", 4, 0, "b.mp4", (0,), 11.0) == 1  # another video
     assert scheduler.make("r", 5, 0, "b.mp4", None, 11.0) == 0  # its windows only

@@ -51,10 +51,12 @@ class Orders:
 
     def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> int:
         """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
-        Returns the samples it names that no make of the same client waiting here names (of the
-        same epoch and video): a make asked again (a reader's retry after ``retry_s``, its reply
-        lost or late) is not new demand (``v2v_samples_asked_total``, which an HPA sizes the
-        fleet on).
+        A make of the same client waiting here for samples all of which ``order`` names (of the
+        same epoch and video) is replaced: a reader asks a make again after ``retry_s`` (its reply lost, or its
+        make queued that long) and awaits only the new one, so answering both would send its rows
+        twice and count its queue twice (``queued``, which readers route on). Returns the samples
+        it names that no such make named: a retry is not new demand (``v2v_samples_asked_total``,
+        which an HPA sizes the fleet on).
 
         Raises:
             ValueError: a video not in the manifest, or an ordinal past its samples where they are
@@ -65,10 +67,20 @@ class Orders:
         if order.ordinals is not None and n is not None and max(order.ordinals) >= n:
             raise ValueError(f"make: sample {max(order.ordinals)} of {order.video!r:.200}, which gives {n} "
                              "sample(s) an epoch")
-        named = {i for o in self.waiting if o.client == order.client and o.epoch == order.epoch
-                 and o.video == order.video for i in o.ordinals or ()}
-        self.waiting.append(order)
-        return sum(1 for i in order.ordinals or () if i not in named)
+        asked, named, waiting = set(order.ordinals or ()), set(), []
+        for o in self.waiting:
+            if (o.client, o.epoch, o.video) != (order.client, order.epoch, order.video):
+                waiting.append(o)
+            elif o.ordinals is None:  # its windows asked: kept unless asked again
+                if order.ordinals is not None:
+                    waiting.append(o)
+            else:
+                named.update(o.ordinals)
+                if not set(o.ordinals) <= asked:  # a make of other samples too: the reader awaits it still
+                    waiting.append(o)
+        waiting.append(order)
+        self.waiting = waiting
+        return len(asked - named)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s makes (it left)."""
