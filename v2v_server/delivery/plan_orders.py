@@ -52,11 +52,11 @@ class Orders:
     def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> int:
         """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
         A make of the same client waiting here for samples all of which ``order`` names (of the
-        same epoch and video) is replaced: a reader asks a make again after ``retry_s`` (its reply lost, or its
-        make queued that long) and awaits only the new one, so answering both would send its rows
-        twice and count its queue twice (``queued``, which readers route on). Returns the samples
-        it names that no such make named: a retry is not new demand (``v2v_samples_asked_total``,
-        which an HPA sizes the fleet on).
+        same epoch and video) is replaced: a reader asks a make again after ``retry_s`` (its
+        reply lost, or its make queued that long) and awaits only the new one, so answering both
+        would send its rows twice and count its queue twice (``queued``, which readers route
+        on). Returns the samples it names that no such make named: a retry is not new demand
+        (``v2v_samples_asked_total``, which an HPA sizes the fleet on).
 
         Raises:
             ValueError: a video not in the manifest, or an ordinal past its samples where they are

@@ -11,8 +11,9 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 
 * counters: ``v2v_samples_made_total``, ``v2v_samples_sent_total``, ``v2v_batches_sent_total``,
   ``v2v_sent_bytes_total``, ``v2v_samples_asked_total`` (the samples fleet readers' makes named,
-  made already or not, a make asked again not counted again: its rate over ``v2v_capacity_samples_per_second`` is the share of the
-  host's capacity a job asks of it, what deploy/k8s-autoscale sizes a fleet by),
+  made already or not, a make asked again not counted again: its rate over
+  ``v2v_capacity_samples_per_second`` is the share of the host's capacity a job asks of it, what
+  deploy/k8s-autoscale sizes a fleet by),
   ``v2v_workers_restarted_total``, ``v2v_files_skipped_total``, ``v2v_bad_messages_total``,
   ``v2v_worker_busy_seconds_total{stage}`` for stage in decode, simulate, flow, serialize,
   send (summed over workers; divided by wall time and workers it is each stage's busy
@@ -87,8 +88,9 @@ class ServerMetrics:
         self.samples_made = counter("v2v_samples_made", "Samples received from workers")
         self.samples_sent = counter("v2v_samples_sent", "Samples sent to clients (re-sends included)")
         self.samples_asked = counter("v2v_samples_asked", "Samples fleet readers' makes named, made already or not, "
-                                     "a make asked again not counted again (rate over v2v_capacity_samples_per_second: the share of the host's capacity "
-                                     "a job asks of it)")
+                                     "a make asked again not counted again (rate over "
+                                     "v2v_capacity_samples_per_second: the share of the host's capacity a job "
+                                     "asks of it)")
         self.batches_sent = counter("v2v_batches_sent", "Batches sent to clients (re-sends included)")
         self.bytes_sent = counter("v2v_sent_bytes", "Array bytes sent to clients")
         self.workers_restarted = counter("v2v_workers_restarted", "Worker processes that died and were replaced")
