@@ -671,7 +671,8 @@ class Router:
 
     def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
              position: Optional[int] = None, refused: Collection[str] = (),
-             video_samples: Optional[int] = None, waited: float = 0.0) -> Optional[str]:
+             video_samples: Optional[int] = None, waited: float = 0.0,
+             idle: Optional[Sequence[str]] = None) -> Optional[str]:
         """The host to ask a copy of ``video`` (``samples`` samples, first needed at
         ``position``) that a reader waits on, asked of ``asked``: the first of its ranking with
         nothing queued by any reader (:meth:`backlog`), not suspect or quiet, not one that ``refused`` a
@@ -682,20 +683,55 @@ class Router:
         :meth:`finish` of it says now (a host behind its word: a queue grown while it was
         paused, work the reader does not see), a backup request after the expected latency
         ("The Tail at Scale"). 128 simulated hosts, sigma 0.2: 32 readers 0.73 of the hosts'
-        capacity without the late rule, 0.78 with it (docs/scaling.md). The host's queue takes
-        the video; None: no copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
+        capacity without the late rule, 0.78 with it (docs/scaling.md). ``idle``: :meth:`idle`
+        at ``now`` where the caller holds it (default: asked). The host's queue takes the video;
+        None: no copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
-        free = [h for h in self.hosts if h not in asked and h not in refused and self.backlog(h, now) <= 0
-                and not self.suspect(h, now) and not self.quiet(h, now)]
+        free = [h for h in (self.idle(now) if idle is None else idle)
+                if h not in asked and h not in refused and self.backlog(h, now) <= 0]
         if not free:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
-        clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
         late = bool(hosts) and all(waited > self.finish(h, samples, position, now, video_samples) for h in hosts)
-        if not late and self.finish(pick, samples, position, now, video_samples) >= clears:
+        if not late and not self._sooner(pick, hosts, samples, position, now, video_samples):
             return None
         self.ask(pick, epoch, video, samples, now, position)
         return pick
+
+    def _sooner(self, pick: str, hosts: Sequence[str], samples: int, position: Optional[int], now: float,
+                video_samples: Optional[int]) -> bool:
+        """``pick`` would make the video (:meth:`finish`) before every host of ``hosts`` made
+        what it makes first: before they start it."""
+        clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
+        return self.finish(pick, samples, position, now, video_samples) < clears
+
+    def share(self, host: str, epoch: int, video: str, samples: int, now: float, position: Optional[int],
+              video_samples: Optional[int], idle: Sequence[str], exclude: Collection[str] = ()) -> Optional[str]:
+        """Where ``video`` (``samples`` of it for this reader, first needed at ``position``),
+        queued on ``host``, is moved to be made sooner: the first of its ranking among ``idle``
+        (:meth:`idle`; none of ``exclude``) if it would make it before ``host`` starts it
+        (:meth:`copy`'s rule), its queue moved there; None: it stays."""
+        s = self.hosts.get(host)
+        ev = (epoch, video)
+        free = [h for h in idle if h != host and h not in exclude and self.backlog(h, now) <= 0]
+        if s is None or ev not in s.queued or not free:
+            return None
+        pick = rank_hosts(video, free, self.weights())[0]
+        if not self._sooner(pick, [host], samples, position, now, video_samples):
+            return None
+        at = s.at.get(ev)
+        self._unqueue(s, ev)
+        asked = self.asked.get(ev, [])
+        if host in asked:
+            asked.remove(host)
+        self.ask(pick, epoch, video, samples, now, at)
+        return pick
+
+    def idle(self, now: float) -> List[str]:
+        """The hosts nothing is queued on by any reader (:meth:`backlog`) that answer (neither
+        suspect nor quiet): those a copy may go to (:meth:`copy`)."""
+        return [h for h in self.hosts if self.backlog(h, now) <= 0 and not self.suspect(h, now)
+                and not self.quiet(h, now)]
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float,
                refused: Optional[Mapping[str, Collection[str]]] = None,
