@@ -11,7 +11,8 @@ asked of which host (:class:`Video`), the rows got and not yet read, and the req
 Each turn of the loop: fill the window, ask what its decided positions need and the windows that
 decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
 (:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: pings of quiet
-hosts, hedges of silent ones, copies, lost replies) and take the hosts' answers (:func:`take`).
+hosts, hedges of silent ones, copies, moves to idle hosts, lost replies) and take the hosts'
+answers (:func:`take`).
 """
 from __future__ import annotations
 

@@ -56,7 +56,10 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   any reader, the first such of the video's ranking, where that host would make it sooner
   (:meth:`Router.copy`); one asked only of hosts that answered nothing for ``hedge_s``
   (stalled, stopped, gone) is asked of the next host of its ranking too (:meth:`Router.hedges`);
-  the first copy's rows win. A host with this reader's work queued that answered nothing, not
+  the first copy's rows win. A host with nothing queued takes, as a move, the first video a
+  reader awaits that it would make before the host holding it starts it (:meth:`Router.share`):
+  the idle host is one reader's of the job, so the job moves one video there, not one a reader.
+  A host with this reader's work queued that answered nothing, not
   even a ping, for ``hedge_s`` is *suspect*: it is routed nothing new until it answers again. A
   host busy with other readers' work still answers pings, and is not. One that left a ping
   unanswered for :data:`QUIET_S` is *quiet* (a paused process): it keeps what it was asked, and
