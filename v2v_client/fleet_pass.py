@@ -26,7 +26,7 @@ import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import wire_zeros_row
-from v2v_wire.fleet import host_key, Router
+from v2v_wire.fleet import Router, host_key
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows,
                                      Withdraw)
@@ -35,15 +35,14 @@ from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 from .fetch import BrokenPeer, PlanServerError, _with_padding
 
 __all__ = ["Pass", "ReaderMemory", "Flights", "Video", "merged", "refused", "steal", "share_idle", "UNFOLD_PER_HOST",
-           "STEAL_S", "IDLE_SCAN",
-           "HOST_REFUSALS"]
+           "STEAL_S", "IDLE_SCAN", "HOST_REFUSALS"]
 
 log = logging.getLogger("v2v.client")
 
 #: Videos whose windows a reader asks for at once while its plan unfolds, per host.
 UNFOLD_PER_HOST = 4
 #: Videos a reader looks at per idle host (:func:`share_idle`), the first its plan needs of those
-#: it awaits: the rest are further from the head than a copy is worth.
+#: it awaits: the rest are further from the head than a move is worth.
 IDLE_SCAN = 16
 #: Seconds the head may wait on a video before the next host of its ranking is asked for a copy
 #: too (:func:`steal`).

@@ -674,8 +674,7 @@ class Router:
 
     def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
              position: Optional[int] = None, refused: Collection[str] = (),
-             video_samples: Optional[int] = None, waited: float = 0.0,
-             idle: Optional[Sequence[str]] = None) -> Optional[str]:
+             video_samples: Optional[int] = None, waited: float = 0.0) -> Optional[str]:
         """The host to ask a copy of ``video`` (``samples`` samples, first needed at
         ``position``) that a reader waits on, asked of ``asked``: the first of its ranking with
         nothing queued by any reader (:meth:`backlog`), not suspect or quiet, not one that ``refused`` a
@@ -686,12 +685,10 @@ class Router:
         :meth:`finish` of it says now (a host behind its word: a queue grown while it was
         paused, work the reader does not see), a backup request after the expected latency
         ("The Tail at Scale"). 128 simulated hosts, sigma 0.2: 32 readers 0.73 of the hosts'
-        capacity without the late rule, 0.78 with it (docs/scaling.md). ``idle``: :meth:`idle`
-        at ``now`` where the caller holds it (default: asked). The host's queue takes the video;
-        None: no copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
+        capacity without the late rule, 0.78 with it (docs/scaling.md). The host's queue takes
+        the video; None: no copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
-        free = [h for h in (self.idle(now) if idle is None else idle)
-                if h not in asked and h not in refused and self.backlog(h, now) <= 0]
+        free = [h for h in self.idle(now) if h not in asked and h not in refused]
         if not free:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
