@@ -350,7 +350,7 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
     made once; one video per idle host, the idle one then busy; of a job's readers, the one the
     idle host's key falls to moves it (each hears it idle at once). Nothing moves to a host that said
     a queue, nor off a host as fast as the idle one that would start it at once."""
-    from v2v_wire.plan_messages import Make
+    from v2v_wire.plan_messages import Make, Moved
 
     def moves(slow_rate, fast_queued, videos=4, reader=(0, 1)):
         slow, fast = HOSTS[:2]
@@ -365,11 +365,14 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
         read.rescue(0.6)
         out = [(h, m.video, m.route, m.move) for h, m in sent[n:] if isinstance(m, Make)]
         first = min(read.videos, key=lambda video: read.videos[video].position)
-        return out, first, read
+        return out, first, read, sent[n:]
 
-    (got, first, read) = moves(0.1, 0)
+    (got, first, read, made) = moves(0.1, 0)
     slow, fast = HOSTS[:2]
     assert got == [(slow, first, fast, True)]
+    assert (0, first) in read.router.hosts[slow].queued  # the queue moves with the host's answer
+    (_, move), = [(h, m) for h, m in made if isinstance(m, Make)]
+    read.receive(slow, Moved(move.request, fast), [], 0.7)
     assert read.router.hosts[fast].queued == {(0, first): 1} and (0, first) not in read.router.hosts[slow].queued
     assert moves(0.1, 5)[0] == []  # the other host is busy for other readers
     mine = host_key(fast) % 3  # a job of three readers: the idle host is one reader's to share

@@ -696,7 +696,6 @@ def share_idle(read: "Pass", now: float) -> None:
     awaited = {video for video, _ in read.flight.values()}
     first = heapq.nsmallest(IDLE_SCAN * len(idle), ((read.videos[video].position, video) for video in awaited))
     for position, video in first:
-        idle = [h for h in idle if read.router.backlog(h, now) <= 0]  # moved there: not idle now
         if not idle or position >= _LAST:
             return
         v = read.videos[video]
@@ -709,6 +708,7 @@ def share_idle(read: "Pass", now: float) -> None:
                                  idle, v.refused)
         if pick is None:
             continue
+        idle.remove(pick)  # one video a turn: its queue moves there with the host's Moved
         for hr, (_, ords, _) in list(v.flight.items()):  # the host answers the make it replaces with Moved too
             del v.flight[hr]
             read.flight.pop(hr, None)

@@ -710,7 +710,9 @@ class Router:
         """Where ``video`` (``samples`` of it for this reader, first needed at ``position``),
         queued on ``host``, is moved to be made sooner: the first of its ranking among ``idle``
         (:meth:`idle`; none of ``exclude``) if it would make it before ``host`` starts it
-        (:meth:`copy`'s rule), its queue moved there; None: it stays."""
+        (:meth:`copy`'s rule); None: it stays. Its queue moves when ``host`` says it moved it
+        (:meth:`moved`): a host that died before it answers keeps it, hedged as any video of a
+        silent host, and the pick stays free for a copy of it."""
         s = self.hosts.get(host)
         ev = (epoch, video)
         free = [h for h in idle if h != host and h not in exclude and self.backlog(h, now) <= 0]
@@ -719,12 +721,6 @@ class Router:
         pick = rank_hosts(video, free, self.weights())[0]
         if not self._sooner(pick, [host], samples, position, now, video_samples):
             return None
-        at = s.at.get(ev)
-        self._unqueue(s, ev)
-        asked = self.asked.get(ev, [])
-        if host in asked:
-            asked.remove(host)
-        self.ask(pick, epoch, video, samples, now, at)
         return pick
 
     def idle(self, now: float) -> List[str]:
