@@ -119,7 +119,7 @@ class PassWorld:
         for r, router in enumerate(routers):
             memory = ReaderMemory(windows=dict(self.slots), made=dict(held or {}))
             read = Pass(router, memory, manifest, self.identity, self.fetch_of(r, 0), PREFETCH, RETRY_S,
-                        "fleet_sim", set(self.names), stream=STREAM, now=self.t0)
+                        "fleet_sim", set(self.names), stream=STREAM, now=self.t0, reader=(r, f.ranks))
             read.add(0, self.fetch_of(r, 0))
             self.readers.append(_Reader(r, read, iter(range(1, self.steps))))
         self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from harness.fleet_sim import Fleet, simulate, static_padding, stay
-from v2v_wire.fleet import WEIGHT_STEP, RateMeter, Router, rank_hosts, spill_draw, weight_step
+from v2v_wire.fleet import WEIGHT_STEP, RateMeter, Router, host_key, rank_hosts, spill_draw, weight_step
 from v2v_wire.plan_messages import PlanAsk
 
 VIDEOS = [f"clips/{i:05d}.mp4" for i in range(4000)]
@@ -343,6 +343,50 @@ def test_a_fleet_pass_moves_what_a_host_it_measured_slow_would_make_late_off_it(
     assert [(h, m.route, m.move) for h, m in again] == [(slow, fast, True)]
 
 
+def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_an_idle_host():
+    """An idle host (nothing queued by any reader, it said) takes the first video the plan needs
+    of those a host would start later than the idle one would make it (``Router.share``): asked
+    as a move of the host holding it (``Make.move``), so every reader's make goes along and it is
+    made once; one video per idle host, the idle one then busy, and neither moved again while the
+    move is unanswered, nor the video ever again that pass; of a job's readers, the one the
+    idle host's key falls to moves it (each hears it idle at once). Nothing moves to a host that said
+    a queue, nor off a host as fast as the idle one that would start it at once."""
+    from v2v_client.fleet_pass import SHARE_S
+    from v2v_wire.plan_messages import Make, Moved
+
+    def moves(slow_rate, fast_queued, videos=4, reader=(0, 1)):
+        slow, fast = HOSTS[:2]
+        read, sent = _fleet_pass({f"clips/{c}.mp4": 1 for c in "abcd"[:videos]}, [slow], others=[fast], stop=videos)
+        read.reader = reader
+        read.router.heard(slow, 0.0, rate=slow_rate)
+        read.ask_window(0.0)
+        assert {h for h, _ in sent} == {slow} and len(sent) == videos
+        read.router.join(fast, 0.5)
+        read.router.heard(fast, 0.5, rate=10.0, queued=fast_queued)
+        n = len(sent)
+        read.rescue(0.6)
+        out = [(h, m.video, m.route, m.move) for h, m in sent[n:] if isinstance(m, Make)]
+        first = min(read.videos, key=lambda video: read.videos[video].position)
+        return out, first, read, sent[n:]
+
+    (got, first, read, made) = moves(0.1, 0)
+    slow, fast = HOSTS[:2]
+    assert got == [(slow, first, fast, True)]
+    assert (0, first) in read.router.hosts[slow].queued  # the queue moves with the host's answer
+    n = len(read.outbox)
+    read.rescue(0.6 + SHARE_S)  # not answered yet: the video and the idle host wait on the move in flight
+    assert not [m for _, m in read.outbox[n:] if isinstance(m, Make)]
+    (_, move), = [(h, m) for h, m in made if isinstance(m, Make)]
+    read.receive(slow, Moved(move.request, fast), [], 0.7)
+    assert read.router.hosts[fast].queued == {(0, first): 1} and (0, first) not in read.router.hosts[slow].queued
+    assert moves(0.1, 5)[0] == []  # the other host is busy for other readers
+    mine = host_key(fast) % 3  # a job of three readers: the idle host is one reader's to share
+    assert [len(moves(0.1, 0, reader=(i, 3))[0]) for i in range(3)] == [int(i == mine) for i in range(3)]
+    got = moves(10.0, 0)[0]  # as fast, with four queued: it would start the moved one after another
+    assert len(got) == 1 and got[0][2:] == (fast, True)
+    assert moves(10.0, 0, videos=1)[0] == []  # it would start the only one at once
+
+
 def test_a_host_that_dies_before_it_answers_a_move_is_hedged_though_its_queue_moved_off_it():
     """A host measured slow is asked its late videos again as moves, which take its queue off it in
     the reader's router; it dies before it answers (a static list of endpoints keeps its name). The
@@ -467,7 +511,8 @@ def test_many_readers_whose_heads_rarely_wait_still_ping_their_hosts_and_hedge_n
     long video for a rank says nothing else meanwhile, so each turn pings the quiet hosts, the
     head's rows had or not. A rank that pinged only while its head waited took such hosts for
     silent at its next wait and hedged their videos: 0.69 of the capacity at 1.106 decodes a
-    clip; pinged at every turn, 0.80 at 1.050 (seeds 0-3: 0.797-0.841 at 1.034-1.050)."""
+    clip; pinged at every turn, 0.80 at 1.050 (seeds 0-3: 0.797-0.841 at 1.034-1.050; with the
+    idle rule too, ``fleet_pass.share_idle``, 0.861-0.864 at 1.025-1.042)."""
     r = simulate(Fleet(hosts=64, videos=6000, ranks=32, step=128, stall_every_s=0.0), "routed")
     assert r.share > 0.75 and r.decodes < 1.06
 

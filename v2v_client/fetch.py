@@ -261,8 +261,10 @@ class Shards:
         lo, hi = shard_ranges(f.start, f.stop, len(self.links))[k]
         return replace(f, start=lo, stop=hi, plan=self.plans[k])
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of) -> Iterator:
-        """``(step, rows, arrays)`` for each of ``steps`` in order: each step's fetch
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of,
+                  reader: Tuple[int, int] = (0, 1)) -> Iterator:
+        """``(step, rows, arrays)`` for each of ``steps`` in order (``reader``: as
+        ``fleet_read.Fleet.fetch_all``'s, which shards do not need): each step's fetch
         (``fetch_of(request, step)``, of global positions) split into the parts of the shards
         holding some of its rows, each asked on that shard's link (``prefetch`` steps in flight,
         an unanswered part asked again after ``retry_s``: the first answer wins), the parts merged

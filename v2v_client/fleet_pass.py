@@ -11,7 +11,8 @@ asked of which host (:class:`Video`), the rows got and not yet read, and the req
 Each turn of the loop: fill the window, ask what its decided positions need and the windows that
 decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
 (:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: pings of quiet
-hosts, hedges of silent ones, copies, lost replies) and take the hosts' answers (:func:`take`).
+hosts, hedges of silent ones, copies, moves to idle hosts, lost replies) and take the hosts'
+answers (:func:`take`).
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import wire_zeros_row
-from v2v_wire.fleet import Router
+from v2v_wire.fleet import Router, host_key
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows,
                                      Withdraw)
@@ -33,13 +34,20 @@ from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import BrokenPeer, PlanServerError, _with_padding
 
-__all__ = ["Pass", "ReaderMemory", "Flights", "Video", "merged", "refused", "steal", "UNFOLD_PER_HOST", "STEAL_S",
-           "HOST_REFUSALS"]
+__all__ = ["Pass", "ReaderMemory", "Flights", "Video", "merged", "refused", "steal", "share_idle", "UNFOLD_PER_HOST",
+           "STEAL_S", "IDLE_SCAN", "SHARE_S", "HOST_REFUSALS"]
 
 log = logging.getLogger("v2v.client")
 
 #: Videos whose windows a reader asks for at once while its plan unfolds, per host.
 UNFOLD_PER_HOST = 4
+#: Videos a reader looks at per idle host (:func:`share_idle`), the first its plan needs of those
+#: it awaits: the rest are further from the head than a move is worth.
+IDLE_SCAN = 16
+#: Seconds between a reader's looks for idle hosts (:func:`share_idle`): a turn comes with each
+#: answer, hundreds a second over 128 hosts, and a look scans what the reader awaits; a clip's
+#: decode takes seconds, so a host idle for a quarter of one costs little.
+SHARE_S = 0.25
 #: Seconds the head may wait on a video before the next host of its ranking is asked for a copy
 #: too (:func:`steal`).
 STEAL_S = 1.0
@@ -136,8 +144,10 @@ class Video:
     needs it (its makes are asked at :meth:`Pass.start_by` of it), the samples asked (ordinal -> request id),
     and the requests in flight ((host, request id) -> (host, ordinals, asked at): each host
     numbers its requests itself), the hosts that refused a make of it (it is asked of others),
-    and whether its arbiter placed it at a host this reader does not read (``here``: the
-    arbiter is asked to make it itself, not asked where it is placed again)."""
+    whether its arbiter placed it at a host this reader does not read (``here``: the
+    arbiter is asked to make it itself, not asked where it is placed again), and whether it was
+    moved to an idle host (``shared``: once a pass, :func:`share_idle`; hosts whose placements
+    of it name each other would otherwise pass it back and forth)."""
 
     host: Optional[str] = None
     position: int = _LAST
@@ -145,6 +155,7 @@ class Video:
     flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
     refused: Dict[str, str] = field(default_factory=dict)
     here: bool = False
+    shared: bool = False
 
 
 class Pass:
@@ -167,6 +178,9 @@ class Pass:
             from the first ``PlanInfo`` of the plan.
         ahead: positions past the head whose videos are asked for (None: :attr:`ahead`'s rule).
         now: the clock's reading at start (default ``time.monotonic()``).
+        reader: this reader's index among the job's readers and their count (ranks times
+            DataLoader workers: ``(rank * workers + worker, ranks * workers)``): each idle host is
+            the one reader's of the job its key falls to (:func:`share_idle`).
 
     Outputs: :attr:`outbox` (``(host endpoint, message)``: ``Make``, ``PlanAsk``, ``Withdraw``;
     a make's ``compression`` is its link's, set as the ``Fleet`` sends it), :attr:`refusing`
@@ -177,7 +191,7 @@ class Pass:
     def __init__(self, router: Router, memory: ReaderMemory, manifest: Manifest, identity: PlanIdentity,
                  first: Fetch, prefetch: int, retry_s: float, endpoint: str = "", withdraws: Set[str] = frozenset(),
                  named: Optional[Mapping[str, str]] = None, stream: Optional[dict] = None, ahead: Optional[int] = None,
-                 now: Optional[float] = None):
+                 now: Optional[float] = None, reader: Tuple[int, int] = (0, 1)):
         self.router, self.memory, self.identity, self.prefetch, self.retry_s = router, memory, identity, prefetch, retry_s
         self.endpoint, self.withdraws, self.stream, self.fixed_ahead = endpoint, withdraws, stream, ahead
         self.named = {} if named is None else named
@@ -201,6 +215,8 @@ class Pass:
         self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
         self._windows = (-1, 0)  # (videos whose windows are known, their windows summed): per_video's
+        self.reader = reader
+        self.shared_at = -SHARE_S  # when share_idle last looked
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
     @property
@@ -491,6 +507,7 @@ class Pass:
             for h, ords, _ in list(v.flight.values()):
                 self.send(video, ords, host, now, here=True)  # a hedge is made where asked, not moved back
         steal(self, now, now - self.head_since >= STEAL_S)
+        share_idle(self, now)
         for h in [h for h in self.flight.hosts if h not in self.router.hosts]:
             for hr in sorted(self.flight.hosts.get(h, ())):  # left the fleet: its videos go to the
                 video, ords = self.flight.pop(hr)  # next hosts of their rankings
@@ -666,3 +683,48 @@ def steal(read: "Pass", now: float, late: bool) -> None:
                              read.video_samples(video), waited)
         if h is not None:
             read.send(video, None if ords is None else tuple(sorted(ords)), h, now, here=True)  # made where asked
+
+
+def share_idle(read: "Pass", now: float) -> None:
+    """The videos this reader awaits of one host, the first its plan needs, moved to the hosts
+    nothing is queued on (``Router.idle``), each where ``Router.share`` says the idle host makes
+    it before its host would start it: the host answers every reader's make of it waiting there
+    with ``Moved`` (``Make.move``; one that started it keeps it), so it is still made once, and
+    the idle host starts it at once. At an epoch's end, and wherever the window's shares came
+    out uneven, an idle host takes work queued behind a slow host rather than idle while the
+    job waits on that host. Only of hosts that take a ``Withdraw`` (as :meth:`Pass.rebalance`);
+    at most :data:`IDLE_SCAN` videos per idle host are looked at, every :data:`SHARE_S`. A
+    video is moved once a pass; until its holder answers, the move keeps the video and the idle
+    host from other moves (the reader's queues change with the answer: ``Router.share``). Each idle host is shared by one
+    reader of the job, the one its key falls to (``Pass.reader``): every reader hears a host idle
+    at once, and each moving a video there gave 128 simulated readers 1.23 decodes a clip at
+    0.71 of the hosts' capacity (0.88 at 1.04 so)."""
+    if now < read.shared_at + SHARE_S:
+        return
+    read.shared_at = now
+    index, readers = read.reader
+    moving = set(read.flight.moves.values())  # a host a move in flight goes to is taken until its holder answers
+    idle = [h for h in read.router.idle(now) if host_key(h) % readers == index and h not in moving]
+    if not idle:
+        return
+    awaited = {video for hr, (video, _) in read.flight.items() if hr not in read.flight.moves}
+    first = heapq.nsmallest(IDLE_SCAN * len(idle), ((read.videos[video].position, video) for video in awaited))
+    for position, video in first:
+        if not idle or position >= _LAST:
+            return
+        v = read.videos[video]
+        hosts = {h for h, _, _ in v.flight.values()}
+        if len(hosts) != 1 or not hosts <= read.withdraws or v.shared or any(hr in read.flight.moves for hr in v.flight):
+            continue  # copied, hedged, moved or moving already; or a host that would not move it
+        (host,) = hosts
+        count = sum(len(ords) if ords else read.per_video() for _, ords, _ in v.flight.values())
+        pick = read.router.share(host, read.epoch, video, count, now, read.start_by(video), read.video_samples(video),
+                                 idle, v.refused)
+        if pick is None:
+            continue
+        idle.remove(pick)  # one video a look: its queue moves there with the host's Moved
+        v.shared = True
+        for hr, (_, ords, _) in list(v.flight.items()):  # the host answers the make it replaces with Moved too
+            del v.flight[hr]
+            read.flight.pop(hr, None)
+            read.send(video, ords, host, now, spill=pick, move=True)

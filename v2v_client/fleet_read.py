@@ -499,11 +499,14 @@ class Fleet:
                                                              if h in self.memory.left_out)]))
 
     # ------------------------------------------------------------------ reading
-    def pass_for(self, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float, now: float) -> Pass:
+    def pass_for(self, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float, now: float,
+                 reader: Tuple[int, int] = (0, 1)) -> Pass:
         """A pass over this fleet of the epoch of ``first`` (its first step's fetch, added), with
-        the fleet's router, the reader's memory and what it knows of its hosts."""
+        the fleet's router, the reader's memory and what it knows of its hosts; ``reader``:
+        ``Pass``'s."""
         return Pass(self.router, self.memory, manifest, self.plan, first, prefetch, retry_s, str(self.endpoint),
-                    self.withdraws, ChainMap(self.out_for_pass, self.memory.left_out), self.stream, self.ahead, now)
+                    self.withdraws, ChainMap(self.out_for_pass, self.memory.left_out), self.stream, self.ahead, now,
+                    reader)
 
     def turn(self, read: Pass, todo, fetch_of, now: float,
              hold: bool = False) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
@@ -602,10 +605,12 @@ class Fleet:
                     self.leave_out(e.peer, e.left_out_for)
         return heard
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None,
+                  reader: Tuple[int, int] = (0, 1)) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order: the rows of ``fetch_of(0,
         step)``'s positions, each made by the host its video is routed to (module docstring;
-        one pass's state and decisions: ``fleet_pass.Pass``). The manifest is read here; then a
+        one pass's state and decisions: ``fleet_pass.Pass``; ``reader``: this process's index
+        among the job's readers and their count, ``Pass``'s). The manifest is read here; then a
         thread of the pass's own turns it (:meth:`turn`, :meth:`take`: it alone uses the sockets
         until the generator is closed), holding up to :data:`HELD_STEPS` steps the loop has not
         taken and turning on while it holds them. Closing the generator (or the read being
@@ -624,7 +629,7 @@ class Fleet:
             return
         f0 = fetch_of(0, first)
         manifest = self._manifest(f0.epoch)
-        read = self.pass_for(manifest, f0, prefetch, retry_s, time.monotonic())
+        read = self.pass_for(manifest, f0, prefetch, retry_s, time.monotonic(), reader)
         read.add(first, f0)
         handed: "queue.Queue" = queue.Queue(maxsize=HELD_STEPS)
         stop = threading.Event()

@@ -305,7 +305,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             for i, rows, arrays in link.fetch_all(
                     items, self.prefetch, self.retry_s,
                     lambda req, i: Fetch(req, r["epoch"], *_rows(r, i, size), self.outputs, info.plan),
-                    lambda i: batch_positions(i // g, 0, world, size, r["origin"]).start):
+                    lambda i: batch_positions(i // g, 0, world, size, r["origin"]).start,
+                    (rank * k + j, world * k) if g == 1 else (j, k)):
                 steps = steps if steps is not None else epoch_steps(rows.samples, world, size, r["origin"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)

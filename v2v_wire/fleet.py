@@ -56,7 +56,10 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   any reader, the first such of the video's ranking, where that host would make it sooner
   (:meth:`Router.copy`); one asked only of hosts that answered nothing for ``hedge_s``
   (stalled, stopped, gone) is asked of the next host of its ranking too (:meth:`Router.hedges`);
-  the first copy's rows win. A host with this reader's work queued that answered nothing, not
+  the first copy's rows win. A host with nothing queued takes, as a move, the first video a
+  reader awaits that it would make before the host holding it starts it (:meth:`Router.share`):
+  the idle host is one reader's of the job, so the job moves one video there, not one a reader.
+  A host with this reader's work queued that answered nothing, not
   even a ping, for ``hedge_s`` is *suspect*: it is routed nothing new until it answers again. A
   host busy with other readers' work still answers pings, and is not. One that left a ping
   unanswered for :data:`QUIET_S` is *quiet* (a paused process): it keeps what it was asked, and
@@ -685,17 +688,46 @@ class Router:
         capacity without the late rule, 0.78 with it (docs/scaling.md). The host's queue takes
         the video; None: no copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
-        free = [h for h in self.hosts if h not in asked and h not in refused and self.backlog(h, now) <= 0
-                and not self.suspect(h, now) and not self.quiet(h, now)]
+        free = [h for h in self.idle(now) if h not in asked and h not in refused]
         if not free:
             return None
         pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
-        clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
         late = bool(hosts) and all(waited > self.finish(h, samples, position, now, video_samples) for h in hosts)
-        if not late and self.finish(pick, samples, position, now, video_samples) >= clears:
+        if not late and not self._sooner(pick, hosts, samples, position, now, video_samples):
             return None
         self.ask(pick, epoch, video, samples, now, position)
         return pick
+
+    def _sooner(self, pick: str, hosts: Sequence[str], samples: int, position: Optional[int], now: float,
+                video_samples: Optional[int]) -> bool:
+        """``pick`` would make the video (:meth:`finish`) before every host of ``hosts`` made
+        what it makes first: before they start it."""
+        clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
+        return self.finish(pick, samples, position, now, video_samples) < clears
+
+    def share(self, host: str, epoch: int, video: str, samples: int, now: float, position: Optional[int],
+              video_samples: Optional[int], idle: Sequence[str], exclude: Collection[str] = ()) -> Optional[str]:
+        """Where ``video`` (``samples`` of it for this reader, first needed at ``position``),
+        queued on ``host``, is moved to be made sooner: the first of its ranking among ``idle``
+        (:meth:`idle`; none of ``exclude``) if it would make it before ``host`` starts it
+        (:meth:`copy`'s rule); None: it stays. Its queue moves when ``host`` says it moved it
+        (:meth:`moved`): a host that died before it answers keeps it, hedged as any video of a
+        silent host, and the pick stays free for a copy of it."""
+        s = self.hosts.get(host)
+        ev = (epoch, video)
+        free = [h for h in idle if h != host and h not in exclude and self.backlog(h, now) <= 0]
+        if s is None or ev not in s.queued or not free:
+            return None
+        pick = rank_hosts(video, free, self.weights())[0]
+        if not self._sooner(pick, [host], samples, position, now, video_samples):
+            return None
+        return pick
+
+    def idle(self, now: float) -> List[str]:
+        """The hosts nothing is queued on by any reader (:meth:`backlog`) that answer (neither
+        suspect nor quiet): those a copy may go to (:meth:`copy`)."""
+        return [h for h in self.hosts if self.backlog(h, now) <= 0 and not self.suspect(h, now)
+                and not self.quiet(h, now)]
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float,
                refused: Optional[Mapping[str, Collection[str]]] = None,
