@@ -480,9 +480,9 @@ class Pass:
             self.outbox.append((h, PlanAsk()))
 
     def rescue(self, now: float) -> None:
-        """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
-        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
-        and the asks no host could take before."""
+        """Hedges of silent hosts' videos, copies of what the head waits on, moves to idle hosts
+        (:func:`share_idle`), and makes asked again (of the next hosts for a host gone, of the same
+        after ``retry_s``: a lost reply, a restart), and the asks no host could take before."""
         self.ping(now)
         parked, self.parked = self.parked, []
         for video, ords in parked:
@@ -695,10 +695,11 @@ def share_idle(read: "Pass", now: float) -> None:
     job waits on that host. Only of hosts that take a ``Withdraw`` (as :meth:`Pass.rebalance`);
     at most :data:`IDLE_SCAN` videos per idle host are looked at, every :data:`SHARE_S`. A
     video is moved once a pass; until its holder answers, the move keeps the video and the idle
-    host from other moves (the reader's queues change with the answer: ``Router.share``). Each idle host is shared by one
-    reader of the job, the one its key falls to (``Pass.reader``): every reader hears a host idle
-    at once, and each moving a video there gave 128 simulated readers 1.23 decodes a clip at
-    0.71 of the hosts' capacity (0.88 at 1.04 so)."""
+    host from other moves (the reader's queues change with the answer: ``Router.share``). Each
+    idle host is shared by one reader of the job, the one its key falls to (``Pass.reader``):
+    every reader hears a host idle at once, and each moving a video there gave 128 simulated
+    readers 1.23 decodes a clip at 0.71 of the hosts' capacity (0.87 at 1.04 so:
+    docs/scaling.md)."""
     if now < read.shared_at + SHARE_S:
         return
     read.shared_at = now
