@@ -348,7 +348,8 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
     of those a host would start later than the idle one would make it (``Router.share``): asked
     as a move of the host holding it (``Make.move``), so every reader's make goes along and it is
     made once; one video per idle host, the idle one then busy, and neither moved again while the
-    move is unanswered, nor the video ever again that pass; of a job's readers, the one the
+    move is unanswered (nor the video again that pass: without it the 128-host simulation below
+    turns for ever, two hosts passing a video back and forth); of a job's readers, the one the
     idle host's key falls to moves it (each hears it idle at once). Nothing moves to a host that said
     a queue, nor off a host as fast as the idle one that would start it at once."""
     from v2v_client.fleet_pass import SHARE_S

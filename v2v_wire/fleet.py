@@ -715,7 +715,7 @@ class Router:
         silent host, and the pick stays free for a copy of it."""
         s = self.hosts.get(host)
         ev = (epoch, video)
-        free = [h for h in idle if h != host and h not in exclude and self.backlog(h, now) <= 0]
+        free = [h for h in idle if h != host and h not in exclude]
         if s is None or ev not in s.queued or not free:
             return None
         pick = rank_hosts(video, free, self.weights())[0]
