@@ -18,26 +18,21 @@ video at a time at the host's rate (samples/s per worker ``1 x`` a log-normal fa
 Poisson process (``stall_every_s`` apart on average, each ``stall_s`` long on average, exponential)
 and stop its workers; each host measures its own capacity (samples over its workers' busy
 seconds, each sample counted as its worker makes it, as a server counts them) and says it with
-each answer and to each ping. The reader reads positions in order, a step of ``step``
-positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
-of the next ``lookahead`` positions, slid with the clock while the head waits (``Router.slide``). Each host works the videos asked of it in order of the first
-position that needs them, and says its queue (the samples every rank asked of it and it has not
-made) with each answer and to each ping, which it answers unless stalled. With ``ranks`` above
-one, each rank reads its slice of every step with its own router, asking the clips of its slice
-only, each of its arbiter (``Router.arbiter``), which places it where the first rank to ask it
-picked (at once: no round trip is modelled); a host keeps what it made and answers a later ask
-of it at once. A rank that hears a host's first rate moves the clips that host would make late
-to its next pick, with every rank's make of each not started there (``Pass.rebalance``). That
-model of the reader (:class:`_World`) reads the fleet the HPA sizes below; an epoch of a fixed
-fleet is read by the real pass (:func:`simulate`).
+each answer and to each ping. The static split's reader (:class:`_World`, one) reads positions in
+order, a step of ``step`` positions at a time, as fast as they are made (the trainer never waits
+on itself), and asks each shard's host ahead for the clips of the next ``lookahead`` positions
+(default ``AHEAD_DECODES`` decodes per worker of the fleet); each host works the clips asked of it
+in order of the first position that needs them. The routed split's readers are the client's own
+passes (``harness.fleet_sim_pass``: ``ranks`` of them, each reading its slice of every step with
+its own router).
 
 **A fleet the HPA sizes** (:func:`autoscale`): a trainer of fixed appetite (samples/s) reads the
-epoch step by step, each once its rows are had and no sooner than its appetite allows; the
-fleet's pods are made and removed by a HorizontalPodAutoscaler (``harness.hpa``: the
-controller's rule, run every 15 s on the manifest of ``deploy/k8s-autoscale``), each pod ready
-``startup_s`` after it is made and joining the reader at its next resolution of the name; the
-reader asks ahead ``AHEAD_DECODES`` decodes per worker of the hosts it reads. Each pod's
-metrics are read every 15 s (:data:`METRIC_WINDOW_S`).
+epoch step by step, each once its rows are had and no sooner than its appetite allows, through
+one real pass (``harness.fleet_sim_scaled``), which asks ahead as ``Pass.ahead`` says of the hosts
+it reads; the fleet's pods are made and removed by a HorizontalPodAutoscaler (``harness.hpa``:
+the controller's rule, run every 15 s on the manifest of ``deploy/k8s-autoscale``), each pod ready
+``startup_s`` after it is made and joining the reader at its next resolution of the name. Each
+pod's metrics are read every 15 s (:data:`METRIC_WINDOW_S`).
 
 Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
 ``tests/test_fleet.py`` checks the figures docs/scaling.md quotes (``--autoscale``:
@@ -57,6 +52,7 @@ import heapq
 import json
 import logging
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from dataclasses import asdict, dataclass, replace
 from typing import Dict, List, Optional, Sequence, Set, Tuple
@@ -68,7 +64,7 @@ from v2v_client.fleet_pass import STEAL_S
 from v2v_wire.fleet import AHEAD_DECODES, HEDGE_S, SLACK, RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
-from harness.hpa import SYNC_S, Hpa, HpaSpec, PodSample
+from harness.hpa import HpaSpec
 
 #: Frames per sample (the paper's 40 voxels x 5 bins + 1) and frames between window starts.
 SAMPLE_FRAMES, WINDOW_STRIDE = 201, 200
@@ -86,8 +82,9 @@ class Fleet:
         slow: ``(host index, factor)``: that host's speed times ``factor`` (``None``: none).
         stall_every_s, stall_s: mean seconds between a host's stalls and mean stall length (0: none).
         step: positions per step (every rank's batch).
-        lookahead: positions the reader asks ahead of the step it reads (None: ``Router.ahead_decodes``
-            decodes per worker of the fleet, at the corpus's mean samples per clip).
+        lookahead: positions the static split's reader asks ahead of the step it reads (None:
+            ``AHEAD_DECODES`` decodes per worker of the fleet, at the corpus's mean samples per
+            clip, and a step); the passes ask ahead by their own rule (``Pass.ahead``).
         hedge_s: seconds a host may answer nothing before the videos a reader waits on are
             asked of the next host.
         slack: the router's bounded load (``Router``'s ``slack``).
@@ -250,12 +247,13 @@ def _needs(plan: EpochPlan, offset_of=lambda p: p) -> Dict[str, Tuple[int, int]]
 
 @dataclass
 class _Layout:
-    """An epoch as the reader reads it: ``pos_clip`` (the clip of each position, None for padding),
-    ``needs`` (clip -> (first position needing it, its samples)), ``home`` (static: clip -> shard)."""
+    """An epoch of static shards as the reader reads it: ``pos_clip`` (the clip of each position,
+    None for padding), ``needs`` (clip -> (first position needing it, its samples)), ``home``
+    (clip -> its shard)."""
 
     pos_clip: List[Optional[str]]
     needs: Dict[str, Tuple[int, int]]
-    home: Optional[Dict[str, int]]
+    home: Dict[str, int]
 
     @property
     def length(self) -> int:
@@ -266,12 +264,9 @@ class _Layout:
         return sum(1 for c in self.pos_clip if c is not None)
 
 
-def _layout(f: Fleet, mode: str, epoch: int) -> _Layout:
-    """The epoch's positions: the one plan (routed), or each shard's plan interleaved (static)."""
+def _layout(f: Fleet, epoch: int) -> _Layout:
+    """The epoch's positions: each shard's plan interleaved (``v2v_wire.plan_shards``)."""
     slots, n = corpus(f), f.hosts
-    if mode == "routed":
-        plan = _epoch(slots, f.seed, epoch)
-        return _Layout([plan.videos[i] for i in plan.video_index.tolist()], _needs(plan), None)
     shard = {v: video_key(v) % n for v in slots}
     plans = [_epoch({v: s for v, s in slots.items() if shard[v] == k}, f.seed, epoch) for k in range(n)]
     length = max(((len(p) - 1) * n + k + 1 for k, p in enumerate(plans) if len(p)), default=0)
@@ -285,272 +280,79 @@ def _layout(f: Fleet, mode: str, epoch: int) -> _Layout:
 
 
 class _World:
-    """One simulated epoch's state: each host's queue (by the first position needing a clip) and
-    free workers, the events to come (a decode's end; the readers' clock), what was made where,
-    and the positions read (module docstring). Rank ``r`` reads position ``p`` when
-    ``(p % step) * ranks // step == r``; a clip a host made is kept there and answered at once
-    to the ranks that ask it later."""
+    """One epoch of static shards read by one reader (module docstring): each host's queue (by
+    the first position needing a clip) and free workers, the decodes' ends to come, the clips
+    had, and the positions read."""
 
-    def __init__(self, f: Fleet, lay: _Layout, routers: Optional[Sequence[Router]]):
-        self.f, self.lay, self.routers, self.n = f, lay, routers, f.hosts
-        self.ranks = len(routers) if routers else 1
+    def __init__(self, f: Fleet, lay: _Layout):
+        self.f, self.lay, self.n = f, lay, f.hosts
         self.speeds = _speeds(f)  # samples/s of one worker of each host
         self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.hosts = [f"host-{k:03d}" for k in range(self.n)]
-        self.index = {h: k for k, h in enumerate(self.hosts)}
-        self.mean = lay.samples / max(1, len(lay.needs))
-        self.t0 = max((s.heard for r in routers or () for s in r.hosts.values()), default=0.0)
-        self.meters = [RateMeter() for _ in range(self.n)]  # each host's own measure of its capacity
-        self.rank_of = [(p % f.step) * self.ranks // f.step for p in range(lay.length)]
-        self.needs = [lay.needs] if self.ranks == 1 else self._rank_needs()  # rank -> clip -> (first, samples)
-        self.by_need = [sorted(n, key=lambda v, n=n: n[v][0]) for n in self.needs]
-        self.asked_upto = [0] * self.ranks  # index into by_need[rank] of its next clip to ask
+        mean = lay.samples / max(1, len(lay.needs))
+        #: positions the reader asks ahead of the step read: ``f.lookahead``, else ``AHEAD_DECODES``
+        #: decodes per worker of the fleet of the corpus's mean samples a clip, and a step
+        self.lookahead = f.lookahead or int(AHEAD_DECODES * self.n * f.slots * mean) + f.step
+        self.by_need = sorted(lay.needs, key=lambda v: lay.needs[v][0])
+        self.asked_upto = 0  # index into by_need of the next clip to ask
         self.queues: List[List[Tuple[int, str]]] = [[] for _ in range(self.n)]
         self.free = [f.slots] * self.n
-        self.events: List[Tuple[float, int, str]] = []  # (time, host or -1 for the readers' clock, clip)
-        self.done_at: Dict[Tuple[int, str], float] = {}  # (rank, clip) -> when that rank had it
-        self.running: Dict[Tuple[int, str], float] = {}  # (host, clip) decoding -> since when
-        self.made_on: List[Set[str]] = [set() for _ in range(self.n)]  # clips each host made (kept)
-        self.waiting: Dict[Tuple[int, str], Set[int]] = {}  # (host, clip) -> the ranks waiting on it there
-        self.queued = [0] * self.n  # samples every rank asked of each host, not made yet: what it says
-        self.placed: List[Dict[str, int]] = [{} for _ in range(self.n)]  # clip -> where its arbiter placed it
-        self.outstanding: List[Set[str]] = [set() for _ in range(self.ranks)]  # clips asked, not had yet
-        self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
-        self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
+        self.events: List[Tuple[float, int, str]] = []  # (a decode's end, host, clip)
+        self.had: Set[str] = set()
+        self.decodes, self.now, self.read = 0, 0.0, 0
         self.step_times: List[Tuple[int, float]] = []
-        # hosts whose rate each rank heard (a router kept from an epoch before knows them)
-        self.rated: List[Set[str]] = [{h for h, s in r.hosts.items() if s.rate} for r in routers] if routers \
-            else [set()]
-        # host -> clip decoding -> (start, end, samples and busy seconds its meter counted of it)
-        self.progress: List[Dict[str, List[float]]] = [{} for _ in range(self.n)]
-
-    @property
-    def lookahead(self) -> int:
-        """Positions the readers ask ahead of the step read: ``f.lookahead``, else the first
-        rank's router's decodes ahead (``Router.ahead_decodes``: its window grows as the hosts'
-        first decodes measure them; static shards: ``AHEAD_DECODES`` per worker) of the corpus's
-        mean samples a clip, and a step."""
-        if self.f.lookahead:
-            return self.f.lookahead
-        decodes = self.routers[0].ahead_decodes() if self.routers else AHEAD_DECODES * self.n * self.f.slots
-        return int(decodes * self.mean) + self.f.step
-
-    def _rank_needs(self) -> List[Dict[str, Tuple[int, int]]]:
-        out: List[Dict[str, Tuple[int, int]]] = [{} for _ in range(self.ranks)]
-        for p, c in enumerate(self.lay.pos_clip):
-            if c is not None:
-                d = out[self.rank_of[p]]
-                first, n = d.get(c, (p, 0))
-                d[c] = (min(first, p), n + 1)
-        return out
 
     def start_work(self, k: int) -> None:
+        """Host ``k``'s free workers start its queue's first clips."""
         while self.free[k] and self.queues[k]:
             _, clip = heapq.heappop(self.queues[k])
-            if clip in self.made_on[k] or (k, clip) in self.running:
-                continue
-            if all((r, clip) in self.done_at for r in self.waiting.get((k, clip), ())):  # had elsewhere: not made
-                self._unqueue(k, clip)
-                continue
             self.free[k] -= 1
-            self.running[(k, clip)] = self.now
             self.decodes += 1
             end = self.stalls.finish(k, self.now, self.lay.needs[clip][1] / self.speeds[k])
-            self.progress[k][clip] = [self.now, end, 0.0, 0.0]
             heapq.heappush(self.events, (end, k, clip))
 
-    def rate(self, k: int) -> Optional[float]:
-        """Host ``k``'s capacity as it says it now (:func:`said_rate`)."""
-        return said_rate(self.meters[k], self.progress[k], lambda clip: self.lay.needs[clip][1], self.now,
-                         self.f.slots, self.t0 + self.now)
-
-    def ask(self, rank: int, clip: str, k: int) -> None:
-        self.outstanding[rank].add(clip)
-        if clip in self.made_on[k]:
-            self.had(rank, clip, k)
-            return
-        ranks = self.waiting.setdefault((k, clip), set())
-        if rank not in ranks:
-            self.queued[k] += self.needs[rank][clip][1]
-            ranks.add(rank)
-        heapq.heappush(self.queues[k], (self.start_by(rank, clip), clip))
-        self.start_work(k)
-
-    def start_by(self, rank: int, clip: str) -> int:
-        """The position ``rank`` asks ``clip`` at (``Router.start_by``; static shards: the first
-        needing it), the order its host works it in."""
-        first = self.needs[rank][clip][0]
-        return self.routers[rank].start_by(first, self.lay.needs[clip][1]) if self.routers else first
-
-    def _unqueue(self, k: int, clip: str) -> Set[int]:
-        """The ranks that waited on ``clip`` at host ``k``, which no longer queues their samples."""
-        ranks = self.waiting.pop((k, clip), set())
-        self.queued[k] -= sum(self.needs[r][clip][1] for r in ranks)
-        return ranks
-
-    def had(self, rank: int, clip: str, k: int) -> bool:
-        """Rank ``rank`` got ``clip`` from host ``k``: True when it is the rank's first copy."""
-        r, at = self.routers[rank] if self.routers else None, self.t0 + self.now
-        first = (rank, clip) not in self.done_at
-        if r is not None:
-            r.answered(self.hosts[k], 0, clip, at, True, self.rate(k), self.queued[k])
-            self.heard_rate(rank, k)
-        if first:
-            self.done_at[(rank, clip)] = self.now
-            self.outstanding[rank].discard(clip)
-            if r is not None:
-                r.finished(0, clip)
-            self.fresh = True
-        return first
-
     def ask_ahead(self) -> None:
-        """The ranks ask the clips of the positions in their window: :attr:`lookahead` past the
-        read, slid while the head waits on the hosts (``Router.slide``, as the reader's
-        ``Pass.reach``)."""
-        reach = self.lookahead if not self.routers else \
-            self.routers[0].slide(self.lookahead, self.now - self.head_since)
-        while True:  # the ranks' next clips in the order of the positions needing them
-            upto = [(self.needs[r][self.by_need[r][i]][0], r) for r, i in enumerate(self.asked_upto)
-                    if i < len(self.by_need[r])]
-            if not upto or min(upto)[0] >= self.read + reach:
+        """The reader asks each clip of the positions in its window (:attr:`lookahead` past the
+        read) of its shard's host, worked in the order of the first position needing it."""
+        while self.asked_upto < len(self.by_need):
+            clip = self.by_need[self.asked_upto]
+            first = self.lay.needs[clip][0]
+            if first >= self.read + self.lookahead:
                 return
-            rank = min(upto)[1]
-            needs, clip = self.needs[rank], self.by_need[rank][self.asked_upto[rank]]
-            self.asked_upto[rank] += 1
-            if self.routers:
-                router = self.routers[rank]
-                due = (needs[clip][0] - self.read) / router.capacity()  # as the reader's Pass.due
-                at = self.t0 + self.now
-                arbiter = router.arbiter(clip, at)
-                pick = router.route(0, clip, needs[clip][1], at, due=due, position=self.start_by(rank, clip),
-                                    video_samples=self.lay.needs[clip][1])
-                self.ask(rank, clip, self.placement(router, clip, arbiter, pick, at))
-            else:
-                self.ask(rank, clip, self.lay.home[clip])
-
-    def placement(self, router: Router, clip: str, arbiter: Optional[str], pick: str, at: float) -> int:
-        """The host that makes ``clip`` for a rank whose router picked ``pick``, as its arbiter
-        (``Router.arbiter``) answers the make (at once; a stalled one does not, and the rank asks
-        ``pick``): the host it placed the clip at, else itself where it was picked or holds the
-        clip, else ``pick``, placed there."""
-        k = self.index[pick]
-        if arbiter is None or arbiter == pick and clip not in self.placed[self.index[arbiter]]:
-            return k
-        a = self.index[arbiter]
-        if self.stalls.silent(a, self.now):
-            return k
-        to = self.placed[a].get(clip)
-        if to is None:
-            if (a, clip) in self.waiting or (a, clip) in self.running or clip in self.made_on[a]:
-                to = a
-            else:
-                to = self.placed[a][clip] = k
-        router.moved(0, clip, pick, self.hosts[to], at)
-        return to
-
-    def heard_rate(self, rank: int, k: int) -> None:
-        """Rank ``rank`` heard host ``k``'s rate: the first time, the clips it queued there that
-        ``k`` would make late (``Router.overdue``) move off it to the host ``Router.move_off``
-        picks, asked of ``k`` (``Make.move``): unless ``k`` started the clip, every rank's
-        make of it waiting there moves with it, as the reader's ``Pass.rebalance``."""
-        r, h = self.routers[rank], self.hosts[k]
-        if h in self.rated[rank] or not r.hosts[h].rate:
-            return
-        self.rated[rank].add(h)
-        at, needs = self.t0 + self.now, self.needs[rank]
-        queued = [c for _, c in r.hosts[h].queued]
-        due = {c: max(0.0, needs[c][0] - self.read) / r.capacity() for c in queued}
-        whole = {c: self.lay.needs[c][1] for c in queued}
-        for c in r.overdue(h, 0, at, due, whole):
-            pick = r.move_off(h, 0, c, needs[c][1], at, due[c], self.start_by(rank, c), whole[c])
-            if pick is None:
-                continue
-            if (k, c) in self.running or c in self.made_on[k] or self.stalls.silent(k, self.now):
-                r.moved(0, c, pick, h, at)  # started there (or the move unanswered yet): the rank awaits it there
-                continue
-            to = self.index[pick]
-            self.placed[k][c] = to
-            for other in sorted(self._unqueue(k, c)):  # each answered Moved: asked of the pick
-                if other != rank:
-                    self.routers[other].moved(0, c, h, pick, at)
-                self.ask(other, c, to)
+            self.asked_upto += 1
+            k = self.lay.home[clip]
+            heapq.heappush(self.queues[k], (first, clip))
+            self.start_work(k)
 
     def advance(self) -> None:
+        """The read moves on by each step whose clips are all had."""
         while self.read < self.lay.length:
             stop = min(self.lay.length, self.read + self.f.step)
-            if any(self.lay.pos_clip[p] is not None and (self.rank_of[p], self.lay.pos_clip[p]) not in self.done_at
+            if any(self.lay.pos_clip[p] is not None and self.lay.pos_clip[p] not in self.had
                    for p in range(self.read, stop)):
                 return
-            self.read, self.head_since = stop, self.now
+            self.read = stop
             self.step_times.append((self.read, self.now))
 
-    def hedge(self) -> None:
-        """The readers' clock: each rank pings the hosts holding its work it has not heard from
-        (``Router.pings``; a stalled host does not answer), asks the clips it asked of silent
-        hosts of their next hosts, and copies those its slice of the step being read has waited on for ``STEAL_S``
-        (``Router.copy``)."""
-        at, waited = self.t0 + self.now, self.now - self.head_since
-        for rank, r in enumerate(self.routers):
-            needs = self.needs[rank]
-            for h in r.pings(at):  # answered by the host's server loop unless it is stalled
-                k = self.index[h]
-                if not self.stalls.silent(k, self.now):
-                    r.heard(h, at, self.rate(k), self.queued[k])
-                    self.heard_rate(rank, k)
-            silent = {h for h in r.hosts if r.suspect(h, at)}
-            waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
-            capacity = r.capacity()
-            due = {c: max(0, needs[c][0] - self.read) / capacity for _, c, _ in waiting}  # as Pass.due
-            for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at, due=due,
-                                    video_samples={c: self.lay.needs[c][1] for _, c, _ in waiting}):
-                self.ask(rank, c, self.index[h])
-            if waited < STEAL_S:
-                continue
-            head = range(self.read, min(self.lay.length, self.read + self.f.step))
-            for c in dict.fromkeys(self.lay.pos_clip[p] for p in head if self.rank_of[p] == rank):
-                if c is not None and (rank, c) not in self.done_at:
-                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), self.start_by(rank, c),
-                               video_samples=self.lay.needs[c][1])
-                    if h is not None:
-                        self.ask(rank, c, self.index[h])
-
     def made(self, k: int, clip: str) -> None:
-        """Host ``k``'s worker made ``clip``: each rank waiting on it there has it (the first
-        copy a rank gets is the one it reads), and the host keeps it."""
+        """Host ``k``'s worker made ``clip``: the reader has it, reads on and asks ahead."""
         self.free[k] += 1
-        _, _, counted, busy = self.progress[k].pop(clip)  # the samples its meter has not counted yet
-        took = self.now - self.running.pop((k, clip))
-        self.meters[k].add(self.lay.needs[clip][1] - counted, (took - busy) / self.f.slots, self.t0 + self.now)
-        self.made_on[k].add(clip)
-        for rank in sorted(self._unqueue(k, clip)):
-            self.had(rank, clip, k)
-        self.settle()
+        self.had.add(clip)
+        self.advance()
+        self.ask_ahead()
         self.start_work(k)
 
-    def settle(self) -> None:
-        """The read advances and the ranks ask ahead, once a rank had a clip it lacked."""
-        if self.fresh:
-            self.fresh = False
-            self.advance()
-            self.ask_ahead()
-
     def run(self) -> None:
+        """The epoch, decode by decode, until its last position is read.
+
+        Raises:
+            RuntimeError: no decode left before then (stuck)."""
         self.ask_ahead()
-        self.settle()
-        tick = min(self.f.hedge_s, STEAL_S) / 2
-        heapq.heappush(self.events, (tick, -1, ""))
         while self.read < self.lay.length:
             if not self.events:
                 raise RuntimeError(f"fleet_sim: stuck at position {self.read} of {self.lay.length}")
             self.now, k, clip = heapq.heappop(self.events)
-            if k >= 0:
-                self.made(k, clip)
-                continue
-            if self.routers:
-                self.hedge()
-                self.ask_ahead()  # the window slides with the clock while the head waits
-                self.settle()
-            heapq.heappush(self.events, (self.now + tick, -1, ""))
+            self.made(k, clip)
 
 
 def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
@@ -573,8 +375,8 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
     if mode == "routed":  # read by the client's own pass (that module builds on this one's fleet)
         from harness.fleet_sim_pass import simulate_pass
         return simulate_pass(f, epoch, routers, held)
-    lay = _layout(f, mode, epoch)
-    w = _World(f, lay, None)
+    lay = _layout(f, epoch)
+    w = _World(f, lay)
     w.run()
     end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)
@@ -749,239 +551,18 @@ class Scaled:
                 "ups_while_idle": sum(a > b and busy < IDLE_BUSY for t, b, a, busy in ch)}
 
 
-def _counter_at(log: List[Tuple[float, float, float]], col: int, t: float) -> float:
-    """Column ``col`` of a pod's scrape ``log`` (times ascending) at ``t``, linear between scrapes."""
-    i = max(0, int(np.searchsorted([e[0] for e in log], t, side="right")) - 1)
-    if i + 1 >= len(log) or log[i + 1][0] <= log[i][0]:
-        return log[i][col]
-    (ta, *a), (tb, *b) = log[i], log[i + 1]
-    return a[col - 1] + (b[col - 1] - a[col - 1]) * (t - ta) / (tb - ta)
-
-
-@dataclass
-class _Pod:
-    started: float
-    ready: Optional[float] = None
-    gen: int = 0
-
-
-class _ScaledWorld(_World):
-    """One epoch read by a trainer of fixed appetite from a fleet whose pods an HPA adds and
-    removes (:func:`autoscale`): pods start, become ready after ``startup_s`` and join the
-    reader's router at its next resolution of the name; a pod removed leaves it at once, its
-    queue and running decodes lost and what only it was asked routed again. Event kinds past the
-    base's: -2 the trainer wants its next step, -3 a scrape, -4 an HPA sync, -5 a pod ready, -6
-    a pod joins the reader (``clip``: ``"index:generation"``)."""
-
-    def __init__(self, f: Fleet, lay: _Layout, job: Job, spec: HpaSpec):
-        pool = [f"host-{k:03d}" for k in range(f.hosts)]
-        router = Router(pool[:job.start_hosts], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S, workers=f.slots)
-        super().__init__(f, lay, [router])
-        self.job, self.spec, self.hpa, self.router = job, spec, Hpa(spec), router
-        self.stalls = _Stalls(f, job.seconds + 600.0)
-        self.pods: Dict[int, _Pod] = {k: _Pod(-job.startup_s, 0.0) for k in range(job.start_hosts)}
-        self.gens = [0] * self.n
-        self.busy_ws, self.marked = [0.0] * self.n, [0.0] * self.n  # busy worker-seconds so far; when counted
-        self.logs: Dict[int, List[Tuple[float, float, float]]] = {k: [(0.0, 0.0, 0.0)] for k in self.pods}
-        self.scraped: Dict[int, Tuple[float, Dict[str, Optional[float]]]] = {}  # host -> (t, metric -> value)
-        self.asked = [0.0] * self.n  # samples asked of each host so far (v2v_samples_asked_total)
-        self.want_at, self.waking = 0.0, False
-        self.window_hosts: Optional[int] = None  # the hosts the reader's window is sized for (window_follows off)
-        self.steps: List[Tuple[float, float]] = []
-        self.syncs: List[Tuple[float, int, int, float, Optional[float]]] = []
-        self._resize()
-
-    def _resize(self) -> None:
-        """With ``job.window_follows`` off, the reader's window stays sized for the hosts it read at
-        the start, at ``AHEAD_DECODES`` per worker (:attr:`lookahead`)."""
-        if self.window_hosts is None:
-            self.window_hosts = len(self.router.hosts)
-
-    @property
-    def lookahead(self) -> int:
-        """As the base's, of the hosts the reader reads now (``job.window_follows``), else of
-        those it read at the start, at ``AHEAD_DECODES`` per worker."""
-        if self.job.window_follows:
-            return super().lookahead
-        return int(AHEAD_DECODES * (self.window_hosts or 0) * self.f.slots * self.mean) + self.f.step
-
-    def _mark(self, k: int) -> None:
-        self.busy_ws[k] += (self.f.slots - self.free[k]) * (self.now - self.marked[k])
-        self.marked[k] = self.now
-
-    def start_work(self, k: int) -> None:
-        self._mark(k)
-        super().start_work(k)
-
-    def made(self, k: int, clip: str) -> None:
-        self._mark(k)
-        super().made(k, clip)
-
-    def advance(self) -> None:
-        """Steps are read as the trainer wants them, each once its rows are had."""
-        while self.read < self.lay.length:
-            if self.now < self.want_at:
-                if not self.waking:
-                    heapq.heappush(self.events, (self.want_at, -2, ""))
-                    self.waking = True
-                return
-            stop = min(self.lay.length, self.read + self.f.step)
-            if any(self.lay.pos_clip[p] is not None and (0, self.lay.pos_clip[p]) not in self.done_at
-                   for p in range(self.read, stop)):
-                return
-            self.steps.append((self.want_at, self.now))
-            self.read = stop
-            self.step_times.append((self.read, self.now))
-            self.want_at = self.now + self.f.step / self.job.appetite_at(self.now)
-            self.head_since = self.want_at  # the reader waits on the next step from when it is wanted
-
-    def ask(self, rank: int, clip: str, k: int) -> None:
-        self.asked[k] += self.needs[rank][clip][1]  # every make's samples, made already or not
-        super().ask(rank, clip, k)
-
-    def backlogs(self) -> Dict[int, float]:
-        """Host -> the work asked of it and not made, in seconds at its rate (its own measure,
-        else its workers at their speed): what :data:`BACKLOG` exports."""
-        samples: Dict[int, float] = {}
-        for (k, clip), ranks in self.waiting.items():
-            if any((r, clip) not in self.done_at for r in ranks):
-                n = float(self.lay.needs[clip][1])
-                if (k, clip) in self.running:
-                    n = max(0.0, n - (self.now - self.running[(k, clip)]) * self.speeds[k])
-                samples[k] = samples.get(k, 0.0) + n
-        return {k: samples.get(k, 0.0) / (self.meters[k].rate() or self.f.slots * self.speeds[k]) for k in self.pods}
-
-    def scrape(self) -> None:
-        """Each ready pod's metrics now (:data:`METRIC_WINDOW_S`), from its counters' log since it joined."""
-        backlog = self.backlogs()
-        for k, p in self.pods.items():
-            if p.ready is None or k not in self.logs:
-                continue
-            self._mark(k)
-            log = self.logs[k]
-            log.append((self.now, self.busy_ws[k], self.asked[k]))
-            values: Dict[str, Optional[float]] = {BACKLOG: backlog[k]}
-            capacity = self.meters[k].rate()
-            for m, col, per in (("cpu", 1, self.f.slots), (BUSY, 1, self.f.slots), (ASKED, 2, capacity)):
-                if per is None:
-                    values[m] = None
-                    continue
-                t0 = max(self.now - METRIC_WINDOW_S[m], log[0][0])
-                rate = (log[-1][col] - _counter_at(log, col, t0)) / per / (self.now - t0) if self.now > t0 else None
-                values[m] = rate
-            while log[0][0] < self.now - LONGEST_S - SCRAPE_S:
-                log.pop(0)
-            self.scraped[k] = (self.now, values)
-
-    def sync(self) -> None:
-        pods = []
-        for k, p in self.pods.items():
-            s = self.scraped.get(k)
-            value = None if s is None else s[1][self.spec.metric]
-            pods.append(PodSample(p.ready is not None, p.ready is not None, p.started, p.ready, value,
-                                  s[0] if s else 0.0, SCRAPE_S))
-        current = len(self.pods)
-        desired = self.hpa.sync(self.now, current, pods)
-        ready = [k for k, p in self.pods.items() if p.ready is not None and k in self.scraped]
-        busy = float(np.mean([self.scraped[k][1]["cpu"] for k in ready])) if ready else 0.0
-        values = [p.value for p in pods if p.value is not None]
-        self.syncs.append((self.now, desired, len(ready), busy, float(np.mean(values)) if values else None))
-        for _ in range(desired - current):
-            k = min(set(range(self.n)) - set(self.pods))
-            self.gens[k] += 1
-            self.pods[k] = _Pod(self.now, None, self.gens[k])
-            heapq.heappush(self.events, (self.now + self.job.startup_s, -5, f"{k}:{self.gens[k]}"))
-        for _ in range(current - desired):  # a ReplicaSet removes pods not ready first, then the newest ready
-            self.remove(min(self.pods, key=lambda k: (self.pods[k].ready is not None, -(self.pods[k].ready or 0.0))))
-
-    def _pod_of(self, tag: str) -> Optional[int]:
-        k, gen = (int(x) for x in tag.split(":"))
-        return k if k in self.pods and self.pods[k].gen == gen else None
-
-    def ready(self, tag: str) -> None:
-        k = self._pod_of(tag)
-        if k is not None:
-            self.pods[k].ready = self.now
-            heapq.heappush(self.events, ((self.now // RESOLVE_S + 1) * RESOLVE_S, -6, tag))
-
-    def join(self, tag: str) -> None:
-        k = self._pod_of(tag)
-        if k is not None:
-            self._mark(k)
-            self.logs[k] = [(self.now, self.busy_ws[k], self.asked[k])]
-            self.router.join(self.hosts[k], self.t0 + self.now, workers=self.f.slots)
-            self._resize()
-            self.fresh = True
-            self.settle()
-
-    def remove(self, k: int) -> None:
-        """Pod ``k`` goes: the reader's router drops it, its work is lost, what only it was asked is routed again."""
-        self._mark(k)
-        del self.pods[k]
-        self.logs.pop(k, None)
-        self.scraped.pop(k, None)
-        orphans = self.router.leave(self.hosts[k])
-        self.events = [e for e in self.events if e[1] != k]
-        heapq.heapify(self.events)
-        self.running = {key: t for key, t in self.running.items() if key[0] != k}
-        self.waiting = {key: r for key, r in self.waiting.items() if key[0] != k}
-        self.queued[k] = 0
-        self.free[k], self.queues[k], self.made_on[k], self.meters[k] = self.f.slots, [], set(), RateMeter()
-        self.progress[k] = {}
-        self.rated[0].discard(self.hosts[k])  # a pod made again under its name is measured again
-        self._resize()
-        needs = self.needs[0]
-        for _, clip in orphans:
-            if (0, clip) not in self.done_at:
-                due = max(0, needs[clip][0] - self.read) / self.router.capacity()
-                h = self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
-                                      position=self.start_by(0, clip), video_samples=self.lay.needs[clip][1])
-                if h is not None:
-                    self.ask(0, clip, self.index[h])
-        self.settle()
-
-    def run(self) -> None:
-        self.ask_ahead()
-        self.advance()
-        tick = min(self.f.hedge_s, STEAL_S) / 2
-        for t, kind in ((tick, -1), (SYNC_S - SCRAPE_LEAD_S, -3), (SYNC_S, -4)):
-            heapq.heappush(self.events, (t, kind, ""))
-        while self.now < self.job.seconds:
-            if self.read >= self.lay.length:
-                raise ValueError(f"fleet_sim: the epoch ({self.lay.samples} samples) ended at {self.now:.0f} s, "
-                                 f"before the job's {self.job.seconds:.0f} s: more videos")
-            self.now, k, tag = heapq.heappop(self.events)
-            if k >= 0:
-                self.made(k, tag)
-            elif k == -1:
-                self.hedge()
-                self.ask_ahead()
-                self.settle()
-                heapq.heappush(self.events, (self.now + tick, -1, ""))
-            elif k == -2:
-                self.waking, self.fresh = False, True
-                self.settle()
-            elif k == -3:
-                self.scrape()
-                heapq.heappush(self.events, (self.now + SCRAPE_S, -3, ""))
-            elif k == -4:
-                self.sync()
-                heapq.heappush(self.events, (self.now + SYNC_S, -4, ""))
-            elif k == -5:
-                self.ready(tag)
-            else:
-                self.join(tag)
-
-
 def autoscale(f: Fleet, job: Job) -> Scaled:
     """Job ``job`` reading one epoch, routed, from a fleet of hosts like ``f``'s (``f.hosts``
     is ignored: the pool is the HPA's ``maxReplicas``) that the HPA of ``job.hpa`` sizes on
-    its metric (or ``job.metric``), ``harness.hpa``'s model of the controller; the reader asks
-    ahead as ``Router.ahead_decodes`` says of the hosts it reads. Pure and seeded.
+    its metric (or ``job.metric``), ``harness.hpa``'s model of the controller, read by one
+    real ``Pass`` (``harness.fleet_sim_scaled.ScaledWorld``), which asks ahead as
+    ``Pass.ahead`` says of the hosts it reads (``job.window_follows`` off: of those it read at
+    the start). Pure and seeded.
 
     Raises:
         ValueError: the manifest's (``HpaSpec.load``), a job out of range (naming its fields), a
-            metric this model does not export, or an epoch that ends before ``job.seconds``."""
+            metric this model does not export, or an epoch that ends before ``job.seconds``.
+        RuntimeError: a row the pass read that is not the plan's (``PassWorld.check``)."""
     spec = HpaSpec.load(Path(job.hpa))
     if job.appetite <= 0 or job.startup_s < 0 or job.seconds <= 0 or not 1 <= job.start_hosts <= spec.max_replicas:
         raise ValueError(f"a job takes > 0 samples/s for > 0 s, pods start in >= 0 s and 1 to maxReplicas "
@@ -991,12 +572,14 @@ def autoscale(f: Fleet, job: Job) -> Scaled:
         spec = replace(spec, metric=job.metric, target=job.target if job.target is not None else spec.target)
     if spec.metric not in METRIC_WINDOW_S:
         raise ValueError(f"{job.hpa}: metric {spec.metric!r}: the simulator exports {', '.join(METRIC_WINDOW_S)}")
+    from harness.fleet_sim_scaled import ScaledWorld  # the real pass's world (that module builds on this one)
+
     f = replace(f, hosts=spec.max_replicas, ranks=1)
-    w = _ScaledWorld(f, _layout(f, "routed", 0), job, spec)
+    w = ScaledWorld(f, job, spec)
     w.run()
     stall = f.stall_s / (f.stall_every_s + f.stall_s) if f.stall_every_s > 0 and f.stall_s > 0 else 0.0
     rate = float(np.mean(w.speeds)) * f.slots * (1 - stall)
-    return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.steps)
+    return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.waits)
 
 
 def _metric(text: str) -> Tuple[str, float]:
@@ -1012,13 +595,27 @@ def _metric(text: str) -> Tuple[str, float]:
     return name, value
 
 
+@contextmanager
+def _passes_quiet():
+    """The passes' log lines (a host placed a clip at a silent one) kept out of the table: hundreds
+    over a simulated fleet's stalls, where the table is what the run says; the level put back after."""
+    client_log = logging.getLogger("v2v.client")
+    level = client_log.level
+    client_log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        client_log.setLevel(level)
+
+
 def _print_autoscale(a: argparse.Namespace) -> int:
     """``--autoscale``: the figures of each run (the manifest's HPA, then each ``--metric``)."""
     f = Fleet(videos=a.videos, slots=a.slots, spread=a.spread, stall_every_s=a.stall_every_s, stall_s=a.stall_s,
               seed=a.seed)
     try:
         job = Job(a.appetite, startup_s=a.startup_s, hpa=a.hpa, window_follows=not a.window_at_start)
-        runs = [autoscale(f, job)] + [autoscale(f, replace(job, metric=m, target=t)) for m, t in a.metric]
+        with _passes_quiet():
+            runs = [autoscale(f, job)] + [autoscale(f, replace(job, metric=m, target=t)) for m, t in a.metric]
     except (OSError, ValueError) as e:  # the manifest's problems name it
         print(f"harness.fleet_sim: {e}", file=sys.stderr)
         return 2
@@ -1104,16 +701,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
-    # the passes' lines (a host placed a clip at a silent one) are hundreds over a simulated fleet's
-    # stalls, where the table is what the run says: kept out of it, and the level put back after
-    client_log = logging.getLogger("v2v.client")
-    level = client_log.level
-    client_log.setLevel(logging.ERROR)
-    try:
+    with _passes_quiet():
         runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
                 for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
-    finally:
-        client_log.setLevel(level)
     seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
           f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading, {seeds}")

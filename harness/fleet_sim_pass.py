@@ -59,7 +59,9 @@ class _Host:
     """One host: its makes waiting by video (``(rank, request, ordinals)``), its queue of videos
     (by the first position a make asks them at), its decodes running (video -> [start, end,
     samples and busy seconds its meter counted]), the videos it made (kept), where it placed
-    videos (video -> (host, when)), and its workers free."""
+    videos (video -> (host, when)), its workers free, and the samples the readers' makes named
+    that no make of the same reader waiting here named (made already or not; a make placed
+    elsewhere names none: its ``v2v_samples_asked_total``)."""
 
     name: str
     k: int
@@ -71,6 +73,7 @@ class _Host:
     made: Set[str] = field(default_factory=set)
     placed: Dict[str, Tuple[str, float]] = field(default_factory=dict)
     queued: int = 0
+    asked: int = 0
 
 
 @dataclass(eq=False)
@@ -89,10 +92,11 @@ class _Reader:
 
 class PassWorld:
     """One epoch of fleet ``f`` (``fleet_sim.Fleet``; ``f.lookahead`` is not used: each pass
-    asks ahead by its own rule) read by ``f.ranks`` real passes (module docstring)."""
+    asks ahead by its own rule, or ``ahead`` positions: ``Pass``'s ``ahead``) read by ``f.ranks``
+    real passes (module docstring)."""
 
     def __init__(self, f: Fleet, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
-                 held: Optional[Dict[str, str]] = None):
+                 held: Optional[Dict[str, str]] = None, ahead: Optional[int] = None):
         if f.ranks < 1 or f.step % f.ranks or (routers is not None and len(routers) != f.ranks):
             raise ValueError(f"ranks must divide step ({f.step}) and each rank have one router, got ranks={f.ranks} "
                              f"and {None if routers is None else len(routers)} routers")
@@ -119,7 +123,7 @@ class PassWorld:
         for r, router in enumerate(routers):
             memory = ReaderMemory(windows=dict(self.slots), made=dict(held or {}))
             read = Pass(router, memory, manifest, self.identity, self.fetch_of(r, 0), PREFETCH, RETRY_S,
-                        "fleet_sim", set(self.names), stream=STREAM, now=self.t0, reader=(r, f.ranks))
+                        "fleet_sim", set(self.names), stream=STREAM, ahead=ahead, now=self.t0, reader=(r, f.ranks))
             read.add(0, self.fetch_of(r, 0))
             self.readers.append(_Reader(r, read, iter(range(1, self.steps))))
         self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
@@ -133,8 +137,8 @@ class PassWorld:
 
     # ------------------------------------------------------------------ events
     def push(self, t: float, kind: str, a, b=None) -> None:
-        """An event at ``t``: ``"wake"`` (rank, token), ``"done"`` (host, video) or ``"host"``
-        (host, (rank, message))."""
+        """An event at ``t``: ``"wake"`` (rank, token), ``"done"`` (host, video), ``"part"``
+        (host, (video, rank, request)) or ``"host"`` (host, (rank, message))."""
         self.seq += 1
         heapq.heappush(self.events, (t, self.seq, kind, a, b))
 
@@ -200,12 +204,15 @@ class PassWorld:
             self.to_reader(rank, h.name, Moved(msg.request, to))
             return
         ords = tuple(msg.ordinals) if msg.ordinals is not None else ()
-        kept = []
+        kept, named = [], set()
         for r, req, asked in h.waiting.get(msg.video, ()):  # ``Orders.add``: a retry replaces the make it repeats
+            if r == rank:
+                named.update(asked)
             if r == rank and set(asked) <= set(ords):
                 h.queued -= len(asked)
             else:
                 kept.append((r, req, asked))
+        h.asked += len(set(ords) - named)
         if msg.video in h.waiting:
             h.waiting[msg.video] = kept
         if msg.video in h.made or not ords:
@@ -339,6 +346,20 @@ class PassWorld:
         for ep, msg in out:
             self.push(self.now, "host", self.index[ep], (rd.rank, msg))
 
+    def handle(self, kind: str, a, b) -> None:
+        """Event ``kind`` (:meth:`push`) at :attr:`now`."""
+        if kind == "wake":
+            rd = self.readers[a]
+            if b == rd.token:
+                rd.wake_at = math.inf
+                self.turn(rd)
+        elif kind == "done":
+            self.done(a, b)
+        elif kind == "part":
+            self.part(a, b)
+        else:
+            self.host_message(a, *b)
+
     def run(self) -> Result:
         """The epoch, event by event, until the job took its last step.
 
@@ -350,17 +371,7 @@ class PassWorld:
             if not self.events:
                 raise RuntimeError(f"fleet_sim_pass: stuck at step {len(self.step_times)} of {self.steps}")
             self.now, _, kind, a, b = heapq.heappop(self.events)
-            if kind == "wake":
-                rd = self.readers[a]
-                if b == rd.token:
-                    rd.wake_at = math.inf
-                    self.turn(rd)
-            elif kind == "done":
-                self.done(a, b)
-            elif kind == "part":
-                self.part(a, b)
-            else:
-                self.host_message(a, *b)
+            self.handle(kind, a, b)
         end = self.now
         lo, hi = int(0.1 * self.samples), int(0.9 * self.samples)
         t_lo = next(t for p, t in self.step_times if p >= lo)
