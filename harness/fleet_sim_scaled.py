@@ -25,7 +25,7 @@ import numpy as np
 
 from harness.fleet_sim import (ASKED, BACKLOG, BUSY, LONGEST_S, METRIC_WINDOW_S, RESOLVE_S, SCRAPE_LEAD_S, SCRAPE_S,
                                Fleet, Job, _Stalls)
-from harness.fleet_sim_pass import PassWorld, _Host
+from harness.fleet_sim_pass import PassWorld, _Host, _Reader
 from harness.hpa import SYNC_S, Hpa, HpaSpec, PodSample
 from v2v_client.fleet_pass import STEAL_S
 from v2v_client.read_ahead import READ_AHEAD
@@ -88,10 +88,12 @@ class ScaledWorld(PassWorld):
         self.marked[k] = self.now
 
     def start_work(self, h: _Host) -> None:
+        """As the base's, ``h``'s busy worker-seconds counted up to now first."""
         self._mark(h.k)
         super().start_work(h)
 
     def done(self, k: int, video: str) -> None:
+        """As the base's, host ``k``'s busy worker-seconds counted up to now first."""
         self._mark(k)
         super().done(k, video)
 
@@ -101,7 +103,7 @@ class ScaledWorld(PassWorld):
             super().host_message(k, rank, msg)
 
     # ------------------------------------------------------------------ the reader and the trainer
-    def turn(self, rd) -> None:
+    def turn(self, rd: _Reader) -> None:
         """As the base's, a pod resolved that says what it serves joining the router first
         (``Fleet.join``)."""
         for ep, msg, _ in rd.inbox:
@@ -215,6 +217,7 @@ class ScaledWorld(PassWorld):
             self.wake(rd, self.now)
 
     def handle(self, kind: str, a, b) -> None:
+        """Event ``kind`` at :attr:`now`: this class's (its docstring), else the base's."""
         if kind == "want":
             self.job()
         elif kind == "scrape":
