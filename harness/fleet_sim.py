@@ -54,7 +54,7 @@ import logging
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
@@ -498,6 +498,7 @@ class Scaled:
         syncs: per HPA sync, ``(t, replicas set, ready pods, busy fraction of the ready pods'
             workers over the last scrape, mean metric of the pods that had one)``.
         steps: per step read, ``(when the trainer wanted it, when it had it)``, seconds.
+        outages: ``(start, end)`` of each stall of a pod while it served, seconds.
     """
 
     job: Job
@@ -506,6 +507,7 @@ class Scaled:
     host_rate: float
     syncs: List[Tuple[float, int, int, float, Optional[float]]]
     steps: List[Tuple[float, float]]
+    outages: List[Tuple[float, float]] = field(default_factory=list)
 
     def needed(self, t: float) -> float:
         """Hosts the job needs at ``t``: its appetite over :attr:`host_rate`."""
@@ -519,6 +521,10 @@ class Scaled:
     def held(self, t0: float, t1: float) -> float:
         """The most replicas the HPA set in ``[t0, t1)`` over the hosts needed then."""
         return max((n / self.needed(t) for t, n, *_ in self.syncs if t0 <= t < t1), default=0.0)
+
+    def out_for(self, t0: float, t1: float) -> float:
+        """The longest a pod that served was stalled within ``[t0, t1)``, seconds."""
+        return max([0.0] + [min(e, t1) - max(s, t0) for s, e in self.outages])
 
     def changes(self) -> List[Tuple[float, int, int, float]]:
         """``(t, replicas before, after, busy fraction of the ready hosts)`` per change."""
@@ -579,7 +585,7 @@ def autoscale(f: Fleet, job: Job) -> Scaled:
     w.run()
     stall = f.stall_s / (f.stall_every_s + f.stall_s) if f.stall_every_s > 0 and f.stall_s > 0 else 0.0
     rate = float(np.mean(w.speeds)) * f.slots * (1 - stall)
-    return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.waits)
+    return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.waits, w.outages())
 
 
 def _metric(text: str) -> Tuple[str, float]:

@@ -78,6 +78,7 @@ class ScaledWorld(PassWorld):
         self.logs: Dict[int, List[Tuple[float, float, float]]] = {k: [(0.0, 0.0, 0.0)] for k in self.pods}
         self.scraped: Dict[int, Tuple[float, Dict[str, Optional[float]]]] = {}  # host -> (t, metric -> value)
         self.want_at = 0.0
+        self.served: List[Tuple[int, float, float]] = []  # (host, ready, removed) of each pod gone
         self.waits: List[Tuple[float, float]] = []
         self.syncs: List[Tuple[float, int, int, float, Optional[float]]] = []
 
@@ -205,6 +206,8 @@ class ScaledWorld(PassWorld):
         lost, and its name is a fresh host's; the reader turns (``Pass.rescue`` asks again what
         it awaited of it)."""
         self._mark(k)
+        if self.pods[k].ready is not None:
+            self.served.append((k, self.pods[k].ready, self.now))
         del self.pods[k]
         self.logs.pop(k, None)
         self.scraped.pop(k, None)
@@ -215,6 +218,16 @@ class ScaledWorld(PassWorld):
         rd = self.readers[0]
         if rd.wake_at > self.now:
             self.wake(rd, self.now)
+
+    def outages(self) -> List[Tuple[float, float]]:
+        """``(start, end)`` of each stall of a pod while it served (ready until removed, or now)."""
+        served = self.served + [(k, p.ready, self.now) for k, p in self.pods.items() if p.ready is not None]
+        out = []
+        for k, ready, gone in served:
+            for s, e in zip(self.stalls.starts[k], self.stalls.ends[k]):
+                if s < gone and e > ready:
+                    out.append((max(float(s), ready), min(float(e), gone)))
+        return sorted(out)
 
     def handle(self, kind: str, a, b) -> None:
         """Event ``kind`` at :attr:`now`: this class's (its docstring), else the base's."""
