@@ -332,13 +332,19 @@ class PassWorld:
         (``Pass.wanted``) and turns at once (``Fleet.fetch_all`` wakes its thread)."""
         taken = self.taken()
         while len(self.step_times) < taken:
-            before = len(self.step_times)
-            self.step_times.append((min(self.samples, before * self.f.step + self.f.step), self.now))
-            for rd in self.readers:
-                if rd.yielded > before + READ_AHEAD:  # the loop's room took one the pass held
-                    rd.read.wanted(self.t0 + self.now)
-                    if rd.read.window and rd.wake_at > self.now:
-                        self.wake(rd, self.now)
+            self.take_step()
+
+    def take_step(self) -> None:
+        """The trainer takes the next step now; each rank whose loop held more than
+        ``READ_AHEAD`` steps takes one its pass held into the loop's room, which wants the next
+        from now (``Pass.wanted``) and turns at once (``Fleet.fetch_all`` wakes its thread)."""
+        before = len(self.step_times)
+        self.step_times.append((min(self.samples, before * self.f.step + self.f.step), self.now))
+        for rd in self.readers:
+            if rd.yielded > before + READ_AHEAD:  # the loop's room took one the pass held
+                rd.read.wanted(self.t0 + self.now)
+                if rd.read.window and rd.wake_at > self.now:
+                    self.wake(rd, self.now)
 
     def send(self, rd: _Reader) -> None:
         """Rank ``rd``'s outbox, each message to its host now (``Fleet.send_out``)."""

@@ -28,7 +28,6 @@ from harness.fleet_sim import (ASKED, BACKLOG, BUSY, LONGEST_S, METRIC_WINDOW_S,
 from harness.fleet_sim_pass import PassWorld, _Host, _Reader
 from harness.hpa import SYNC_S, Hpa, HpaSpec, PodSample
 from v2v_client.fleet_pass import STEAL_S
-from v2v_client.read_ahead import READ_AHEAD
 from v2v_wire.fleet import AHEAD_DECODES, Router
 from v2v_wire.plan_messages import PlanAsk, PlanInfo
 
@@ -124,17 +123,11 @@ class ScaledWorld(PassWorld):
         """The trainer takes each step the reader handed on once it wants it (``want_at``; then
         it wants the next ``step / appetite`` seconds on); the loop's room then takes a step the
         pass held, as the base's."""
-        rd = self.readers[0]
-        while len(self.step_times) < rd.yielded and self.now >= self.want_at:
-            before = len(self.step_times)
+        while len(self.step_times) < self.readers[0].yielded and self.now >= self.want_at:
             self.waits.append((self.want_at, self.now))
-            self.step_times.append((min(self.samples, before * self.f.step + self.f.step), self.now))
+            self.take_step()
             self.want_at = self.now + self.f.step / self.trainer.appetite_at(self.now)
             self.push(self.want_at, "want", None)
-            if rd.yielded > before + READ_AHEAD:
-                rd.read.wanted(self.t0 + self.now)
-                if rd.read.window and rd.wake_at > self.now:
-                    self.wake(rd, self.now)
 
     # ------------------------------------------------------------------ the HPA
     def backlogs(self) -> Dict[int, float]:
