@@ -34,7 +34,9 @@ the controller's rule, run every 15 s on the manifest of ``deploy/k8s-autoscale`
 ``startup_s`` after it is made and joining the reader at its next resolution of the name. Each
 pod's metrics are read every 15 s (:data:`METRIC_WINDOW_S`).
 
-Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
+Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table (``--waits
+S``: instead, each step the routed job waited on S seconds or longer, with the rank it waited for
+last and the row that came last, from which host),
 ``tests/test_fleet.py`` checks the figures docs/scaling.md quotes (``--autoscale``:
 ``tests/test_fleet_sim_autoscale.py``).
 """
@@ -655,6 +657,27 @@ def _sizes(text: str) -> List[int]:
     return sizes
 
 
+def _print_waits(f: Fleet, at_least_s: float) -> int:
+    """``--waits``: the routed epoch's steps waited on ``at_least_s`` or longer
+    (``fleet_sim_pass.PassWorld.waited``), one line each."""
+    if not at_least_s > 0:
+        print(f"harness.fleet_sim: --waits must be > 0 seconds, got {at_least_s}", file=sys.stderr)
+        return 2
+    from harness.fleet_sim_pass import PassWorld
+    with _passes_quiet():
+        world = PassWorld(f)
+        r = world.run()
+    waits = world.waited(at_least_s)
+    print(f"{f.hosts} hosts, speed spread sigma {f.spread}, {f.ranks} rank(s), seed {f.seed}: the epoch took "
+          f"{r.seconds:.1f} s, {r.share:.3f} of the hosts' capacity, at {r.decodes:.3f} decodes a clip; "
+          f"{len(waits)} step(s) waited on {at_least_s:g} s or longer, {sum(w.waited_s for w in waits):.1f} s in all")
+    print(f"{'step':>6} {'taken at':>9} {'waited':>7} {'first rank had it':>18} {'last rank':>9}  last row (from, when)")
+    for w in waits:
+        print(f"{w.step:>6} {w.taken_at:>8.1f}s {w.waited_s:>6.1f}s {w.first_at:>17.1f}s {w.rank:>9}  {w.sample} "
+              f"({w.host}, {w.arrived_at:.1f} s)")
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m harness.fleet_sim", description=__doc__.split("\n\n")[0])
     ap.add_argument("--hosts", type=int, default=Fleet.hosts)
@@ -673,6 +696,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                          "one seed's whole-epoch share moves by several hundredths with the corpus's and the "
                          "speeds' draws (docs/scaling.md)")
     ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--waits", type=float, default=None, metavar="SECONDS",
+                    help="print only the steps the routed job waited on this long or longer (seed --seed), each with "
+                         "the rank it waited for last and the row that came last: where a whole epoch's time goes")
     ap.add_argument("--padding", default=None, metavar="VIDEOS,...", type=_sizes,
                     help="print only the static shards' padding for these corpus sizes (2, 8, 32, 128 shards)")
     ap.add_argument("--autoscale", action="store_true",
@@ -707,6 +733,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
+    if a.waits is not None:
+        return _print_waits(f, a.waits)
     with _passes_quiet():
         runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
                 for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]

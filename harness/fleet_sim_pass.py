@@ -76,6 +76,23 @@ class _Host:
     asked: int = 0
 
 
+@dataclass(frozen=True)
+class Wait:
+    """A step the job waited on (:meth:`PassWorld.waited`): taken at ``taken_at`` (seconds of the
+    simulated epoch), ``waited_s`` after the step before; its first rank had it at ``first_at``,
+    and the last, rank ``rank``, once the rows of ``sample`` (``video#ordinal``) came from
+    ``host`` at ``arrived_at``: the row the whole job waited for."""
+
+    step: int
+    taken_at: float
+    waited_s: float
+    first_at: float
+    rank: int
+    sample: str
+    host: str
+    arrived_at: float
+
+
 @dataclass(eq=False)
 class _Reader:
     """One rank's process: its pass, the steps it has yet to add, the answers it has not taken,
@@ -129,6 +146,9 @@ class PassWorld:
         self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.step_times: List[Tuple[int, float]] = []
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
+        self.arrived: Dict[Tuple[int, str], Tuple[float, str]] = {}  # (rank, sample id) -> when its kept rows came, from
+        #: step -> (when, rank, (when its last row came, from, its sample id)) as each rank handed it on
+        self.handed: Dict[int, List[Tuple[float, int, Tuple[float, str, str]]]] = {}
 
     def fetch_of(self, rank: int, step: int) -> Fetch:
         """Rank ``rank``'s slice of step ``step``."""
@@ -292,7 +312,12 @@ class PassWorld:
         read, at = rd.read, self.t0 + self.now
         read.router.listen(at)
         for ep, msg, frames in rd.inbox:
+            new = [sid for sid in msg.sample_ids if sid is not None and tuple(_key(sid)) not in read.got] \
+                if isinstance(msg, Rows) else ()
             read.receive(ep, msg, frames, at)
+            for sid in new:
+                if tuple(_key(sid)) in read.got:  # the rows the pass keeps (not a late copy's, dropped)
+                    self.arrived[(rd.rank, sid)] = (self.now, ep)
             self.send(rd)
         rd.inbox = []
         while read.window:
@@ -314,6 +339,7 @@ class PassWorld:
             RuntimeError: a row that is not the plan's sample there, naming it."""
         f = self.fetch_of(rd.rank, step)
         plan, kpw = rd.read.plan, rd.read.kpw
+        last = (-1.0, "", "")
         for p, got in zip(range(f.start, f.stop), rows.sample_ids):
             key = plan.key(p)
             want = None if key is None else f"{key.video}#{key.ordinal(kpw)}"
@@ -321,6 +347,8 @@ class PassWorld:
                 raise RuntimeError(f"fleet_sim_pass: rank {rd.rank} read {got} at position {p}, the plan's is {want}")
             if key is not None:
                 self.made_by.setdefault(key.video, rd.read.memory.made[key.video])
+                last = max(last, (*self.arrived.pop((rd.rank, got)), got))
+        self.handed.setdefault(step, []).append((self.now, rd.rank, last))
 
     def taken(self) -> int:
         """Steps the job has taken: those every rank has handed on."""
@@ -388,6 +416,25 @@ class PassWorld:
         clips = sum(1 for n in self.slots.values() if n)
         return Result("routed", self.samples, self.steps * f.step, end, self.samples / end,
                       (hi - lo) / max(t_hi - t_lo, 1e-9), capacity, self.decodes / max(1, clips), self.made_by)
+
+
+    def waited(self, at_least_s: float) -> List[Wait]:
+        """The steps the job took ``at_least_s`` seconds or more after the one before, each with
+        the rank it waited for last and that rank's last row (after :meth:`run`)."""
+        out, before = [], 0.0
+        for step, (_, t) in enumerate(self.step_times):
+            if t - before >= at_least_s:
+                handed = self.handed[step]
+                when, rank, (arrived, host, sample) = max(handed)
+                out.append(Wait(step, t, t - before, min(h[0] for h in handed), rank, sample, host, arrived))
+            before = t
+        return out
+
+
+def _key(sample_id: str) -> Tuple[str, int]:
+    """``(video, ordinal)`` of a row's sample id (``video#ordinal``, as :meth:`PassWorld.answer` names it)."""
+    video, ordinal = sample_id.rsplit("#", 1)
+    return video, int(ordinal)
 
 
 def simulate_pass(f: Fleet, epoch: int = 0, routers: Optional[Sequence[Router]] = None,

@@ -593,6 +593,36 @@ def test_the_simulated_fleet_is_read_by_the_real_pass_each_position_once_in_orde
     assert 1.0 <= r.decodes <= 1.3
 
 
+def test_the_simulator_names_the_rank_and_the_row_each_wait_of_the_job_was_for(capsys):
+    """``PassWorld.waited`` (``--waits``): each step the job waited on, the rank it waited for last
+    and the row of that rank's slice that came last, from the host that made it; the waits of any
+    length add up to the epoch."""
+    from harness.fleet_sim import main
+    from harness.fleet_sim_pass import PassWorld
+
+    f = Fleet(hosts=8, videos=600, ranks=4, step=32, spread=0.5)
+    w = PassWorld(f)
+    r = w.run()
+    every = w.waited(1e-9)
+    assert sum(x.waited_s for x in every) == pytest.approx(r.seconds)
+    long = w.waited(1.0)
+    assert long == [x for x in every if x.waited_s >= 1.0] and long
+    for x in long:
+        assert 0 <= x.rank < f.ranks and x.first_at <= x.taken_at and x.arrived_at <= x.taken_at
+        assert x.host in w.names
+        fetch, read = w.fetch_of(x.rank, x.step), w.readers[x.rank].read
+        keys = [read.plan.key(p) for p in range(fetch.start, fetch.stop)]
+        assert x.sample in {f"{k.video}#{k.ordinal(read.kpw)}" for k in keys if k is not None}
+    assert main(["--hosts", "8", "--videos", "600", "--ranks", "4", "--step", "32", "--spread", "0.5",
+                 "--waits", "1"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert f"{len(long)} step(s) waited on 1 s or longer" in lines[0]
+    assert [(int(p[0]), int(p[4]), p[5]) for p in (line.split() for line in lines[2:])] == \
+        [(x.step, x.rank, x.sample) for x in long]
+    assert main(["--waits", "0"]) == 2
+    assert "--waits must be > 0" in capsys.readouterr().err
+
+
 def test_static_shards_pad_more_rows_the_more_shards_a_corpus_is_split_into():
     pad = static_padding(10_000, (2, 8, 32, 128))
     assert pad[2] < pad[8] < pad[32] < pad[128]
