@@ -671,7 +671,8 @@ def _print_waits(f: Fleet, at_least_s: float) -> int:
     print(f"{f.hosts} hosts, speed spread sigma {f.spread}, {f.ranks} rank(s), seed {f.seed}: the epoch took "
           f"{r.seconds:.1f} s, {r.share:.3f} of the hosts' capacity, at {r.decodes:.3f} decodes a clip; "
           f"{len(waits)} step(s) waited on {at_least_s:g} s or longer, {sum(w.waited_s for w in waits):.1f} s in all")
-    print(f"{'step':>6} {'taken at':>9} {'waited':>7} {'first rank had it':>18} {'last rank':>9}  last row (from, when)")
+    print(f"{'step':>6} {'taken at':>9} {'waited':>7} {'first rank had it':>18} {'last rank':>9}  "
+          "last row (from, when)")
     for w in waits:
         print(f"{w.step:>6} {w.taken_at:>8.1f}s {w.waited_s:>6.1f}s {w.first_at:>17.1f}s {w.rank:>9}  {w.sample} "
               f"({w.host}, {w.arrived_at:.1f} s)")

@@ -146,7 +146,7 @@ class PassWorld:
         self.stalls = _Stalls(f, 4 * self.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.step_times: List[Tuple[int, float]] = []
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
-        self.arrived: Dict[Tuple[int, str], Tuple[float, str]] = {}  # (rank, sample id) -> when its kept rows came, from
+        self.arrived: Dict[Tuple[int, str], Tuple[float, str]] = {}  # (rank, sample id) -> (when its rows came, from)
         #: step -> (when, rank, (when its last row came, from, its sample id)) as each rank handed it on
         self.handed: Dict[int, List[Tuple[float, int, Tuple[float, str, str]]]] = {}
 
@@ -416,7 +416,6 @@ class PassWorld:
         clips = sum(1 for n in self.slots.values() if n)
         return Result("routed", self.samples, self.steps * f.step, end, self.samples / end,
                       (hi - lo) / max(t_hi - t_lo, 1e-9), capacity, self.decodes / max(1, clips), self.made_by)
-
 
     def waited(self, at_least_s: float) -> List[Wait]:
         """The steps the job took ``at_least_s`` seconds or more after the one before, each with
