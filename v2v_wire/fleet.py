@@ -740,17 +740,17 @@ class Router:
         in flight went to; default: the hosts this router asked) and needs soon: each asked of
         the next host of its ranking too that answers (neither suspect nor quiet), not one that
         refused a make of it (``refused``: video -> hosts), whatever its load (every host quiet:
-        the first of them). Every reader of a
-        job that waits on the video hedges it to that one host, whose one decode then answers
-        them all; picked by the bounded load (:meth:`route`), each reader's pick followed its own
-        view of the queues, and one reader's hedge of a clip the job's last step waited on went
-        to a host of 0.57x that stalled in turn, another reader's to one of 1.74x (128
-        simulated hosts, 32 readers, sigma 0.5, seeds 0-3: 0.871-0.890 of the hosts' capacity
-        at 1.021 decodes a clip, against 0.854-0.885 at 1.030: docs/scaling.md). ``due``: video -> seconds until the reader's head needs it (missing or None:
-        now); a video due later than ``hedge_s`` and a worker's decode of it (:meth:`decode_s`,
-        ``video_samples``: its whole decode, default ``samples``) stays with its silent host,
-        which may come back (a paused process) and make it in time, until it comes that near:
-        hedging a silent host's whole queue at once decodes all of it twice when the host comes
+        the first of them). Every reader of a job that waits on the video hedges it to that one
+        host, whose one decode then answers them all; picked by the bounded load
+        (:meth:`route`), each reader's pick followed its own view of the queues, and one
+        reader's hedge of a clip the job's last step waited on went to a host of 0.57x that
+        stalled in turn, another reader's to one of 1.74x (128 simulated hosts, 32 readers,
+        sigma 0.5, seeds 0-3: 0.871-0.890 of the hosts' capacity at 1.021 decodes a clip,
+        against 0.854-0.885 at 1.030: docs/scaling.md). ``due``: video -> seconds until the
+        reader's head needs it (missing or None: now); a video due later than ``hedge_s`` and a
+        worker's decode of it (:meth:`decode_s`, ``video_samples``: its whole decode, default
+        ``samples``) stays with its silent host, which may come back (a paused process) and
+        make it in time, until it comes that near: hedging a silent host's whole queue at once decodes all of it twice when the host comes
         back (128 simulated hosts stalling 10 s every 300 s on average, seeds 0-2, 1-32 readers:
         0.001-0.011 fewer decodes a clip, the share of the hosts' capacity within 0.005:
         docs/scaling.md). Returns ``(epoch, video, host)`` for each new copy."""
