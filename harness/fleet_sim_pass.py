@@ -312,11 +312,11 @@ class PassWorld:
         read, at = rd.read, self.t0 + self.now
         read.router.listen(at)
         for ep, msg, frames in rd.inbox:
-            new = [sid for sid in msg.sample_ids if sid is not None and tuple(_key(sid)) not in read.got] \
-                if isinstance(msg, Rows) else ()
+            keys = [(sid, _key(sid)) for sid in msg.sample_ids if sid is not None] if isinstance(msg, Rows) else ()
+            new = [(sid, key) for sid, key in keys if key not in read.got]
             read.receive(ep, msg, frames, at)
-            for sid in new:
-                if tuple(_key(sid)) in read.got:  # the rows the pass keeps (not a late copy's, dropped)
+            for sid, key in new:
+                if key in read.got:  # the rows the pass keeps (not a late copy's, dropped)
                     self.arrived[(rd.rank, sid)] = (self.now, ep)
             self.send(rd)
         rd.inbox = []
