@@ -696,7 +696,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="run seeds --seed .. --seed + N - 1 and print each split's mean, with the share's range: "
                          "one seed's whole-epoch share moves by several hundredths with the corpus's and the "
                          "speeds' draws (docs/scaling.md)")
-    ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--json", default=None, help="also write the results here (not with --waits, --padding or "
+                                                "--autoscale, which print a table only)")
     ap.add_argument("--waits", type=float, default=None, metavar="SECONDS",
                     help="print only the steps the routed job waited on this long or longer (seed --seed), each with "
                          "the rank it waited for last and the row that came last: where a whole epoch's time goes")
@@ -713,6 +714,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--window-at-start", action="store_true",
                     help="with --autoscale: the reader asks ahead for the hosts it read at the start only")
     a = ap.parse_args(argv)
+    printed = [name for name, given in (("--waits", a.waits is not None), ("--padding", a.padding),
+                                        ("--autoscale", a.autoscale)) if given]
+    if a.json and printed:  # they print their tables only: a --json not written would pass unnoticed
+        print(f"harness.fleet_sim: --json {a.json}: not written with {printed[0]}, which prints its table only; "
+              "drop one of them", file=sys.stderr)
+        return 2
     problem = json_output_problem(Path(a.json)) if a.json else ""
     if problem:
         print(f"harness.fleet_sim: --json {a.json}: {problem}", file=sys.stderr)

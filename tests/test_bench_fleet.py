@@ -37,6 +37,19 @@ def test_results_never_replace_a_file_that_is_not_json(tmp_path, capsys):
         assert src.read_text() == "source\n"
 
 
+def test_the_simulators_tables_refuse_a_json_they_would_not_write(tmp_path, capsys):
+    """harness.fleet_sim's --waits, --padding and --autoscale print a table only: with --json each
+    is one line naming both options, and nothing is written."""
+    from harness.fleet_sim import main as sim_main
+    out = tmp_path / "sim.json"
+    for option in (["--waits", "1"], ["--padding", "10"], ["--autoscale"]):
+        assert sim_main(["--json", str(out), *option]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"harness.fleet_sim: --json {out}: not written with "
+                                                        f"{option[0]}"), err
+        assert not out.exists()
+
+
 @pytest.mark.skipif(shutil.which("taskset") is None or (os.cpu_count() or 1) < 2, reason="needs taskset and 2 cores")
 @pytest.mark.timeout(300)
 def test_epoch_2_finds_a_lone_hosts_videos_and_a_fleets_that_stay_on_their_host_in_its_frame_cache(tmp_path):
