@@ -728,6 +728,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if getattr(a, name) < 1:
             print(f"harness.fleet_sim: --{name} must be >= 1, got {getattr(a, name)}", file=sys.stderr)
             return 2
+    for name in ("stall_every_s", "stall_s"):
+        if not getattr(a, name) >= 0:  # 0: no stalls
+            print(f"harness.fleet_sim: --{name.replace('_', '-')} must be >= 0 (0: no stalls), got {getattr(a, name)}",
+                  file=sys.stderr)
+            return 2
     if a.padding:
         print(f"{'videos':>10} " + " ".join(f"{n:>6} shards" for n in (2, 8, 32, 128)))
         for v in a.padding:
@@ -748,7 +753,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
     seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
-          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading, {seeds}")
+          + (f"stalls every {f.stall_every_s} s for {f.stall_s} s on average" if f.stall_every_s > 0 and f.stall_s > 0
+             else "no stalls") + f", {f.ranks} rank(s) reading, {seeds}")
     print(f"{'split':<8} {'samples/s':>10} {'capacity':>9} {'share':>6} {'10-90 %':>8} {'decodes/clip':>13} "
           f"{'padding':>8}" + (f" {'share min-max':>14}" if a.seeds > 1 else ""))
     for col in zip(*runs):

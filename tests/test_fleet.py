@@ -623,6 +623,22 @@ def test_the_simulator_names_the_rank_and_the_row_each_wait_of_the_job_was_for(c
     assert "--waits must be > 0" in capsys.readouterr().err
 
 
+def test_the_simulators_stalls_are_said_as_run_and_a_negative_one_is_refused(capsys):
+    """0 for either stall figure runs the fleet without stalls, and the table's header says so; a
+    negative or nan one is one line naming the option, exit 2."""
+    from harness.fleet_sim import main
+
+    tiny = ["--hosts", "8", "--videos", "600", "--step", "32"]
+    assert main([*tiny, "--stall-every-s", "0"]) == 0
+    assert ", no stalls, 1 rank(s) reading" in capsys.readouterr().out.splitlines()[0]
+    assert main([*tiny, "--stall-every-s", "300", "--stall-s", "10"]) == 0
+    assert "stalls every 300.0 s for 10.0 s on average" in capsys.readouterr().out.splitlines()[0]
+    for option, value in (("--stall-s", "-1"), ("--stall-every-s", "nan")):
+        assert main([option, value]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"harness.fleet_sim: {option} must be >= 0"), err
+
+
 def test_static_shards_pad_more_rows_the_more_shards_a_corpus_is_split_into():
     pad = static_padding(10_000, (2, 8, 32, 128))
     assert pad[2] < pad[8] < pad[32] < pad[128]
