@@ -110,6 +110,11 @@ class Fleet:
     ranks: int = 1
     seed: int = 0
 
+    @property
+    def stalling(self) -> bool:
+        """Whether the hosts stall: both stall figures > 0 (either 0: no stalls)."""
+        return self.stall_every_s > 0 and self.stall_s > 0
+
 
 @dataclass
 class Result:
@@ -176,7 +181,7 @@ class _Stalls:
         self.starts: List[np.ndarray] = []
         self.ends: List[np.ndarray] = []
         for _ in range(f.hosts):
-            if f.stall_every_s <= 0 or f.stall_s <= 0:
+            if not f.stalling:
                 self.starts.append(np.zeros(0))
                 self.ends.append(np.zeros(0))
                 continue
@@ -585,7 +590,7 @@ def autoscale(f: Fleet, job: Job) -> Scaled:
     f = replace(f, hosts=spec.max_replicas, ranks=1)
     w = ScaledWorld(f, job, spec)
     w.run()
-    stall = f.stall_s / (f.stall_every_s + f.stall_s) if f.stall_every_s > 0 and f.stall_s > 0 else 0.0
+    stall = f.stall_s / (f.stall_every_s + f.stall_s) if f.stalling else 0.0
     rate = float(np.mean(w.speeds)) * f.slots * (1 - stall)
     return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.waits, w.outages())
 
@@ -752,9 +757,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         runs = [[simulate(g, "routed"), simulate(replace(g, ranks=1), "static")]  # static: one reader
                 for g in (replace(f, seed=a.seed + i) for i in range(a.seeds))]
     seeds = f"seed {a.seed}" if a.seeds == 1 else f"seeds {a.seed}..{a.seed + a.seeds - 1} (means; share: min-max)"
-    print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
-          + (f"stalls every {f.stall_every_s} s for {f.stall_s} s on average" if f.stall_every_s > 0 and f.stall_s > 0
-             else "no stalls") + f", {f.ranks} rank(s) reading, {seeds}")
+    stalls = f"stalls every {f.stall_every_s} s for {f.stall_s} s on average" if f.stalling else "no stalls"
+    print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, {stalls}, "
+          f"{f.ranks} rank(s) reading, {seeds}")
     print(f"{'split':<8} {'samples/s':>10} {'capacity':>9} {'share':>6} {'10-90 %':>8} {'decodes/clip':>13} "
           f"{'padding':>8}" + (f" {'share min-max':>14}" if a.seeds > 1 else ""))
     for col in zip(*runs):
