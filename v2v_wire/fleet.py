@@ -387,11 +387,9 @@ class Router:
         self._routed[0] += 1
         self._routed[1] += samples
         weights = self.weights()
-        ranking = [h for h in rank_hosts(video, list(self.hosts), weights)
-                   if h not in exclude and not self.suspect(h, now)]
+        ranking = self._answering(video, now, exclude, weights)
         if not ranking:
             return None
-        ranking = [h for h in ranking if not self.quiet(h, now)] or ranking
         backlog = {h: self.backlog(h, now) for h in self.hosts}
         total = sum(backlog.values()) + samples
         weight = sum(weights[h] for h in ranking)
@@ -423,6 +421,14 @@ class Router:
             pick = next(h for h in pool if ends[h] <= (1 + self.slack) * best)
         self.ask(pick, epoch, video, samples, now, position)
         return pick
+
+    def _answering(self, video: str, now: float, exclude: Collection[str] = (),
+                   weights: Optional[Mapping[str, float]] = None) -> List[str]:
+        """``video``'s ranking less ``exclude`` and the suspect hosts, the quiet ones left out too
+        unless every one left is quiet: the hosts :meth:`route` and :meth:`hedges` pick from."""
+        ranking = [h for h in rank_hosts(video, list(self.hosts), self.weights() if weights is None else weights)
+                   if h not in exclude and not self.suspect(h, now)]
+        return [h for h in ranking if not self.quiet(h, now)] or ranking
 
     def per_video(self) -> float:
         """Samples a video routed so far asked, on average (2 before any: a WebVid clip's windows)."""
@@ -750,10 +756,10 @@ class Router:
         reader's head needs it (missing or None: now); a video due later than ``hedge_s`` and a
         worker's decode of it (:meth:`decode_s`, ``video_samples``: its whole decode, default
         ``samples``) stays with its silent host, which may come back (a paused process) and
-        make it in time, until it comes that near: hedging a silent host's whole queue at once decodes all of it twice when the host comes
-        back (128 simulated hosts stalling 10 s every 300 s on average, seeds 0-2, 1-32 readers:
-        0.001-0.011 fewer decodes a clip, the share of the hosts' capacity within 0.005:
-        docs/scaling.md). Returns ``(epoch, video, host)`` for each new copy."""
+        make it in time, until it comes that near: hedging a silent host's whole queue at once
+        decodes all of it twice when the host comes back (128 simulated hosts stalling 10 s every
+        300 s on average, seeds 0-2, 1-32 readers: 0.001-0.011 fewer decodes a clip, the share of
+        the hosts' capacity within 0.005: docs/scaling.md). Returns ``(epoch, video, host)`` for each new copy."""
         out = []
         for epoch, video, samples in waiting:
             hosts = self.asked.get((epoch, video), ()) if awaited is None else awaited.get(video, ())
@@ -763,11 +769,8 @@ class Router:
             d = None if due is None else due.get(video)
             if d is not None and d > self.hedge_s + self.decode_s((video_samples or {}).get(video, samples)):
                 continue
-            bad = {*asked, *(refused or {}).get(video, ())}
-            ranking = [h for h in rank_hosts(video, list(self.hosts), self.weights())
-                       if h not in bad and not self.suspect(h, now)]
-            h = next((h for h in ranking if not self.quiet(h, now)), ranking[0] if ranking else None)
-            if h is not None:
-                self.ask(h, epoch, video, samples, now)
-                out.append((epoch, video, h))
+            ranking = self._answering(video, now, {*asked, *(refused or {}).get(video, ())})
+            if ranking:
+                self.ask(ranking[0], epoch, video, samples, now)
+                out.append((epoch, video, ranking[0]))
         return out
