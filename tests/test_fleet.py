@@ -388,6 +388,42 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
     assert moves(10.0, 0, videos=1)[0] == []  # it would start the only one at once
 
 
+def test_a_fleet_pass_at_its_epochs_end_copies_what_a_slow_or_paused_host_holds_to_an_idle_host():
+    """Once the window holds the epoch's last step, a video of one host is copied to an idle host
+    (``fleet_pass.back_up``) where the copy's decode, by ``1 + slack``, is shorter than what its
+    host has left (its decode less the seconds since the ask; no end for a quiet host): the
+    epoch ends with its last clip, and the idle hosts have nothing else to make. Not before the
+    window holds the last step, nor where the host would be done first, nor twice."""
+    from v2v_client.fleet_pass import SHARE_S
+    from v2v_wire.plan_messages import Make
+
+    slow, fast = HOSTS[:2]
+
+    def copies(slots, slow_rate, at=0.9, paused=False):
+        read, sent = _fleet_pass(slots, [slow], others=[fast], stop=4)
+        read.withdraws = {fast}  # no move off the slow host (share_idle): its copy is what is judged
+        read.router.heard(slow, 0.0, rate=slow_rate)
+        read.ask_window(0.0)
+        read.router.join(fast, 0.5)
+        read.router.heard(fast, 0.5, rate=10.0, queued=0)
+        if paused:
+            assert read.router.pings(read.router.ping_s) == [slow]  # it answers no more
+        read.wanted(at - 0.1)  # the head has waited less than STEAL_S: no copy of steal's
+        n = len(sent)
+        read.rescue(at)
+        got = [(h, m.video, m.ordinals) for h, m in sent[n:] if isinstance(m, Make)]
+        n = len(sent)
+        read.rescue(at + SHARE_S)
+        assert not [m for _, m in sent[n:] if isinstance(m, Make)]  # copied once
+        return got
+
+    one = {"clips/a.mp4": 4}
+    assert copies(one, 0.4) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]  # 10 s of decode, 0.9 s in
+    assert copies(one, 4.0) == []  # 1 s of decode, 0.9 s in: done before the copy
+    assert copies(one, 4.0, at=4.0, paused=True) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]
+    assert copies({"clips/a.mp4": 4, "clips/b.mp4": 4}, 0.4) == []  # a step after this one
+
+
 def test_a_host_that_dies_before_it_answers_a_move_is_hedged_though_its_queue_moved_off_it():
     """A host measured slow is asked its late videos again as moves, which take its queue off it in
     the reader's router; it dies before it answers (a static list of endpoints keeps its name). The

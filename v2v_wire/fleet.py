@@ -569,11 +569,39 @@ class Router:
         rate = s.rate or self.mean_rate() or 1.0
         return (first + others + (video_samples or samples) * s.workers) / rate
 
-    def decode_s(self, video_samples: int) -> float:
-        """Seconds one worker of a mean host takes to decode a video of ``video_samples`` samples:
-        the fleet's rate (:meth:`capacity`) over its workers."""
+    def decode_s(self, video_samples: int, host: Optional[str] = None) -> float:
+        """Seconds one worker of a mean host (``host`` given: of that host, at the rate it said,
+        else the fleet's mean) takes to decode a video of ``video_samples`` samples: the fleet's
+        rate (:meth:`capacity`) over its workers, or the host's over its own."""
+        if host is not None:
+            s = self.hosts[host]
+            return video_samples * s.workers / (s.rate or self.mean_rate() or 1.0)
         workers = sum(s.workers for s in self.hosts.values())
         return video_samples * workers / self.capacity() if workers else 0.0
+
+    def backup(self, epoch: int, video: str, samples: int, now: float, host: str, video_samples: int,
+               asked_s: float, idle: List[str], position: Optional[int] = None) -> Optional[str]:
+        """Where a reader at its epoch's end copies ``video`` (``samples`` of it, its whole decode
+        ``video_samples``), asked of ``host`` alone ``asked_s`` seconds ago: ``idle[0]`` (the
+        reader's idle hosts, fastest worker first; taken off the list) where its decode, by ``1 +
+        slack``, is shorter than what ``host`` has left of its own (its decode less ``asked_s``:
+        a decode started at the ask at the earliest; no end for a quiet host, a paused
+        process). None: no copy. MapReduce's backup tasks: at an epoch's end the idle hosts
+        have nothing else to make, and the epoch ends with its last clip, on a slow host or one
+        that stalled while it made it (docs/scaling.md). The pick's queue takes the video."""
+        if not idle or self.decode_s(video_samples, idle[0]) * (1 + self.slack) >= \
+                self.left_s(host, video_samples, asked_s, now):
+            return None
+        pick = idle.pop(0)
+        self.ask(pick, epoch, video, samples, now, position)
+        return pick
+
+    def left_s(self, host: str, video_samples: int, asked_s: float, now: float) -> float:
+        """Seconds ``host``, asked ``asked_s`` seconds ago for a video of ``video_samples``
+        samples, has left of its decode at most: the decode (:meth:`decode_s`) less ``asked_s``
+        (started at the ask at the earliest; below 0: late by its own measure); infinite for a
+        quiet host (:meth:`quiet`: a paused process, which makes nothing until it runs again)."""
+        return float("inf") if self.quiet(host, now) else self.decode_s(video_samples, host) - asked_s
 
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
