@@ -11,8 +11,8 @@ asked of which host (:class:`Video`), the rows got and not yet read, and the req
 Each turn of the loop: fill the window, ask what its decided positions need and the windows that
 decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
 (:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: pings of quiet
-hosts, hedges of silent ones, copies, moves to idle hosts, lost replies) and take the hosts'
-answers (:func:`take`).
+hosts, hedges of silent ones, copies, moves to idle hosts, the epoch's end's copies, lost
+replies) and take the hosts' answers (:func:`take`).
 """
 from __future__ import annotations
 
@@ -490,8 +490,9 @@ class Pass:
 
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, moves to idle hosts
-        (:func:`share_idle`), and makes asked again (of the next hosts for a host gone, of the same
-        after ``retry_s``: a lost reply, a restart), and the asks no host could take before."""
+        (:func:`share_idle`), copies to idle hosts at the epoch's end (:func:`back_up`), makes
+        asked again (of the next hosts for a host gone, of the same after ``retry_s``: a lost
+        reply, a restart), and the asks no host could take before."""
         self.ping(now)
         parked, self.parked = self.parked, []
         for video, ords in parked:
@@ -748,9 +749,9 @@ def back_up(read: "Pass", now: float) -> None:
     The idle hosts are the reader's share of them (``Pass.reader``, as :func:`share_idle`); a
     video is copied once a pass, every :data:`SHARE_S` at most. At an epoch's end the hosts idle
     while its last clips are made on slow hosts and on hosts that stalled making them. 128
-    simulated hosts, whole epoch: 8 readers at sigma 0.2, seeds 0-2, read 0.899-0.921 of the
-    hosts' capacity (0.881-0.903 without), 32 readers at sigma 0.5, seeds 0-3, 0.877-0.904
-    (0.871-0.890), at 0.003-0.005 more decodes a clip (docs/scaling.md)."""
+    simulated hosts, whole epoch: 8 readers at sigma 0.2, seeds 0-2, read 0.908-0.915 of the
+    hosts' capacity (0.881-0.903 without), 32 readers at sigma 0.5, seeds 0-3, 0.871-0.897
+    (0.871-0.890), at most 0.003 more decodes a clip (docs/scaling.md)."""
     if not read.at_end or now < read.backed_at + SHARE_S:
         return
     read.backed_at = now
