@@ -131,6 +131,15 @@ class Flights(dict):
             self.moves.pop(key, None)
         return super().pop(key, *default)
 
+    @property
+    def destinations(self) -> Set[str]:
+        """The hosts the moves in flight go to (each taken until its video's holder answers)."""
+        return set(self.moves.values())
+
+    def moving(self, requests) -> bool:
+        """Whether one of ``requests`` (``(host, request id)``) is a move in flight."""
+        return any(r in self.moves for r in requests)
+
     def _less(self, key: Tuple[str, int]) -> None:
         keys = self.hosts[key[0]]
         keys.discard(key)
@@ -158,6 +167,11 @@ class Video:
     here: bool = False
     shared: bool = False
     backed: bool = False
+
+    @property
+    def holders(self) -> Set[str]:
+        """The hosts its requests in flight went to."""
+        return {h for h, _, _ in self.flight.values()}
 
 
 class Pass:
@@ -504,7 +518,7 @@ class Pass:
         awaited = {}  # the videos awaited only of silent hosts or hosts gone: the hedges' candidates
         for video in sorted({self.flight[hr][0] for h in out for hr in self.flight.hosts[h]},
                             key=lambda video: (self.videos[video].position, video)):
-            hosts = {h for h, _, _ in self.videos[video].flight.values()}
+            hosts = self.videos[video].holders
             if all(h in silent or h not in self.router.hosts for h in hosts):
                 awaited[video] = hosts
         waiting = [(self.epoch, video, len(self.videos[video].flight)) for video in awaited]
@@ -687,7 +701,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
         v = read.videos.get(video)
         if v is None or not v.flight:
             continue
-        asked = sorted({h for h, _, _ in v.flight.values()})
+        asked = sorted(v.holders)
         n = len(ords) if ords else read.per_video()
         waited = now - max(read.head_since, min(at for _, _, at in v.flight.values()))
         h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused,
@@ -715,7 +729,7 @@ def share_idle(read: "Pass", now: float) -> None:
         return
     read.shared_at = now
     index, readers = read.reader
-    moving = set(read.flight.moves.values())  # a host a move in flight goes to is taken until its holder answers
+    moving = read.flight.destinations
     idle = [h for h in read.router.idle(now) if host_key(h) % readers == index and h not in moving]
     if not idle:
         return
@@ -725,8 +739,8 @@ def share_idle(read: "Pass", now: float) -> None:
         if not idle or position >= _LAST:
             return
         v = read.videos[video]
-        hosts = {h for h, _, _ in v.flight.values()}
-        if len(hosts) != 1 or not hosts <= read.withdraws or v.shared or any(hr in read.flight.moves for hr in v.flight):
+        hosts = v.holders
+        if len(hosts) != 1 or not hosts <= read.withdraws or v.shared or read.flight.moving(v.flight):
             continue  # copied, hedged, moved or moving already; or a host that would not move it
         (host,) = hosts
         count = sum(len(ords) if ords else read.per_video() for _, ords, _ in v.flight.values())
@@ -756,7 +770,7 @@ def back_up(read: "Pass", now: float) -> None:
         return
     read.backed_at = now
     router, (index, readers) = read.router, read.reader
-    moving = set(read.flight.moves.values())  # a host a move in flight goes to is taken (share_idle)
+    moving = read.flight.destinations
     idle = sorted((h for h in router.idle(now) if host_key(h) % readers == index and router.hosts[h].rate
                    and h not in moving), key=lambda h: (router.decode_s(1, h), h))
     if not idle:
@@ -764,9 +778,8 @@ def back_up(read: "Pass", now: float) -> None:
     waits = []
     for video in {video for video, _ in read.flight.values()}:
         v = read.videos[video]
-        hosts = {h for h, _, _ in v.flight.values()}
-        if v.backed or len(hosts) != 1 or not hosts <= router.hosts.keys() or any(hr in read.flight.moves
-                                                                                  for hr in v.flight):
+        hosts = v.holders
+        if v.backed or len(hosts) != 1 or not hosts <= router.hosts.keys() or read.flight.moving(v.flight):
             continue
         (host,) = hosts
         whole = read.video_samples(video)

@@ -547,7 +547,11 @@ class Router:
     def _others(self, s: _Host, now: Optional[float]) -> float:
         if not s.others or now is None:
             return s.others
-        return max(0.0, s.others - (now - s.said) * (s.rate or self.mean_rate() or 1.0))
+        return max(0.0, s.others - (now - s.said) * self._rate(s))
+
+    def _rate(self, s: _Host) -> float:
+        """A host's samples/s as this reader counts it: as it said, else the fleet's mean, else 1."""
+        return s.rate or self.mean_rate() or 1.0
 
     def finish(self, host: str, samples: int, position: Optional[int] = None, now: Optional[float] = None,
                video_samples: Optional[int] = None) -> float:
@@ -566,7 +570,7 @@ class Router:
         others = self._others(s, now)
         if others:
             others *= first / s.load if s.load else 1.0
-        rate = s.rate or self.mean_rate() or 1.0
+        rate = self._rate(s)
         return (first + others + (video_samples or samples) * s.workers) / rate
 
     def decode_s(self, video_samples: int, host: Optional[str] = None) -> float:
@@ -575,7 +579,7 @@ class Router:
         rate (:meth:`capacity`) over its workers, or the host's over its own."""
         if host is not None:
             s = self.hosts[host]
-            return video_samples * s.workers / (s.rate or self.mean_rate() or 1.0)
+            return video_samples * s.workers / self._rate(s)
         workers = sum(s.workers for s in self.hosts.values())
         return video_samples * workers / self.capacity() if workers else 0.0
 
