@@ -20,7 +20,7 @@ import heapq
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Set, Tuple
+from typing import Dict, Iterable, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
 
@@ -172,6 +172,11 @@ class Video:
     def holders(self) -> Set[str]:
         """The hosts its requests in flight went to."""
         return {h for h, _, _ in self.flight.values()}
+
+    @property
+    def first_asked(self) -> float:
+        """When the first of its requests in flight was asked (it has one at least)."""
+        return min(at for _, _, at in self.flight.values())
 
 
 class Pass:
@@ -351,6 +356,11 @@ class Pass:
             self._windows = (len(w), sum(w.values()))
         return max(1, round(self.kpw * self._windows[1] / self._windows[0])) if w else self.kpw
 
+    def asked_samples(self, ordinals: Iterable[Optional[Tuple[int, ...]]]) -> int:
+        """Samples the makes asking ``ordinals`` (each a make's; None: a video's windows, counted
+        as :meth:`per_video`) ask in all: what a move or copy of them queues on its host."""
+        return sum(len(ords) if ords else self.per_video() for ords in ordinals)
+
     def video_samples(self, video: str) -> int:
         """Samples a host's decode of ``video`` makes, every window's, whichever of them this
         reader asks (``Router.finish``): its windows where known, else :meth:`per_video`."""
@@ -425,7 +435,7 @@ class Pass:
             flights = [(hr, ords) for hr, (h, ords, _) in v.flight.items() if h == host]
             if v.host != host or not flights:
                 continue
-            count = sum(len(ords) if ords else self.per_video() for _, ords in flights)
+            count = self.asked_samples(ords for _, ords in flights)
             pick = self.router.move_off(host, self.epoch, video, count, now, due[video], self.start_by(video),
                                         whole[video], exclude=list(v.refused))
             if pick is None:
@@ -703,7 +713,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
             continue
         asked = sorted(v.holders)
         n = len(ords) if ords else read.per_video()
-        waited = now - max(read.head_since, min(at for _, _, at in v.flight.values()))
+        waited = now - max(read.head_since, v.first_asked)
         h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused,
                              read.video_samples(video), waited)
         if h is not None:
@@ -743,7 +753,7 @@ def share_idle(read: "Pass", now: float) -> None:
         if len(hosts) != 1 or not hosts <= read.withdraws or v.shared or read.flight.moving(v.flight):
             continue  # copied, hedged, moved or moving already; or a host that would not move it
         (host,) = hosts
-        count = sum(len(ords) if ords else read.per_video() for _, ords, _ in v.flight.values())
+        count = read.asked_samples(ords for _, ords, _ in v.flight.values())
         pick = read.router.share(host, read.epoch, video, count, now, read.start_by(video), read.video_samples(video),
                                  idle, v.refused)
         if pick is None:
@@ -783,11 +793,11 @@ def back_up(read: "Pass", now: float) -> None:
             continue
         (host,) = hosts
         whole = read.video_samples(video)
-        asked_s = now - min(at for _, _, at in v.flight.values())
+        asked_s = now - v.first_asked
         waits.append((-router.left_s(host, whole, asked_s, now), video, host, whole, asked_s))
     for _, video, host, whole, asked_s in sorted(waits):
         v = read.videos[video]
-        count = sum(len(ords) if ords else read.per_video() for _, ords, _ in v.flight.values())
+        count = read.asked_samples(ords for _, ords, _ in v.flight.values())
         pick = router.backup(read.epoch, video, count, now, host, whole, asked_s, idle, read.start_by(video))
         if pick is None:
             continue
