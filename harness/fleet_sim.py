@@ -131,6 +131,11 @@ class Result:
         capacity: the hosts' summed rates, samples/s, less each host's stalled time.
         decodes: clip decodes started per clip in the epoch (above 1: hedged copies).
         made_by: clip -> the host whose decode was read.
+        decoding: the share of the hosts' capacity over the epoch spent decoding, copies
+            included (its excess over :attr:`share` made samples no reader read); the rest
+            idled. None: not counted (the static split).
+        idle_end: the share of the hosts' capacity over the epoch that idled in its last tenth
+            of seconds, when the hosts had made all but its last clips (None: not counted).
     """
 
     mode: str
@@ -142,6 +147,8 @@ class Result:
     capacity: float
     decodes: float
     made_by: Dict[str, str]
+    decoding: Optional[float] = None
+    idle_end: Optional[float] = None
 
     @property
     def share(self) -> float:
@@ -761,14 +768,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, {stalls}, "
           f"{f.ranks} rank(s) reading, {seeds}")
     print(f"{'split':<8} {'samples/s':>10} {'capacity':>9} {'share':>6} {'10-90 %':>8} {'decodes/clip':>13} "
-          f"{'padding':>8}" + (f" {'share min-max':>14}" if a.seeds > 1 else ""))
+          f"{'padding':>8} {'decoding':>9} {'idle at end':>12}" + (f" {'share min-max':>14}" if a.seeds > 1 else ""))
     for col in zip(*runs):
         def mean(x, col=col):
             return sum(x(r) for r in col) / len(col)
+
+        def counted(x, col=col):  # a share the split counts, else "-"
+            return "-" if x(col[0]) is None else f"{mean(x):.3f}"
         shares = [r.share for r in col]
         print(f"{col[0].mode:<8} {mean(lambda r: r.rate):>10.1f} {mean(lambda r: r.capacity):>9.1f} "
               f"{mean(lambda r: r.share):>6.3f} {mean(lambda r: r.steady_share):>8.3f} "
-              f"{mean(lambda r: r.decodes):>13.3f} {mean(lambda r: 1 - r.samples / r.positions):>8.1%}"
+              f"{mean(lambda r: r.decodes):>13.3f} {mean(lambda r: 1 - r.samples / r.positions):>8.1%} "
+              f"{counted(lambda r: r.decoding):>9} {counted(lambda r: r.idle_end):>12}"
               + (f" {min(shares):>6.3f}-{max(shares):.3f}" if a.seeds > 1 else ""))
     if a.json:
         write_whole(a.json, json.dumps({"fleet": asdict(f), "seeds": a.seeds, "results": [

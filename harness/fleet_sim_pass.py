@@ -129,6 +129,7 @@ class PassWorld:
         self.seq = 0
         self.now = 0.0
         self.decodes = 0
+        self.decoded: List[Tuple[int, float, float]] = []  # (host, start, end) of each decode ended
         self.per = f.step // f.ranks
         self.samples = sum(self.slots.values())  # the epoch's positions holding a sample (a window a sample)
         self.steps = -(-self.samples // f.step)
@@ -289,6 +290,7 @@ class PassWorld:
         h = self.hosts[k]
         h.free += 1
         start, _, counted, busy = h.running.pop(video)
+        self.decoded.append((k, start, self.now))
         h.meter.add(self.slots[video] - counted, (self.now - start - busy) / self.f.slots, self.now)
         h.made.add(video)
         for r, req, ords in h.waiting.pop(video, []):
@@ -414,8 +416,31 @@ class PassWorld:
         capacity = float(sum(self.speeds[k] * f.slots * (1 - self.stalls.stalled(k, end) / end)
                              for k in range(f.hosts)))
         clips = sum(1 for n in self.slots.values() if n)
+        decoding, idle_end = self.busy(end, capacity)
         return Result("routed", self.samples, self.steps * f.step, end, self.samples / end,
-                      (hi - lo) / max(t_hi - t_lo, 1e-9), capacity, self.decodes / max(1, clips), self.made_by)
+                      (hi - lo) / max(t_hi - t_lo, 1e-9), capacity, self.decodes / max(1, clips), self.made_by,
+                      decoding, idle_end)
+
+    def busy(self, end: float, capacity: float) -> Tuple[float, float]:
+        """``(decoding, idle_end)`` of an epoch that ended at ``end`` seconds with ``capacity``
+        samples/s (``Result``'s): the work the hosts' workers did in it, each second of a decode
+        out of a stall counted at its host's speed, decodes still running at the end up to it,
+        as a share of the capacity's; and the capacity's share that idled in the last tenth."""
+        tail = 0.9 * end
+        spans = self.decoded + [(h.k, start, end) for h in self.hosts for start, *_ in h.running.values()]
+        work = work_end = 0.0
+        for k, a, b in spans:
+            b = min(b, end)
+            work += self.speeds[k] * (b - a - (self.stalls.stalled(k, b) - self.stalls.stalled(k, a)))
+            if b > tail:
+                a = max(a, tail)
+                work_end += self.speeds[k] * (b - a - (self.stalls.stalled(k, b) - self.stalls.stalled(k, a)))
+        slots = self.f.slots
+        cap_end = float(sum(self.speeds[k] * slots * (end - tail - (self.stalls.stalled(k, end)
+                                                                     - self.stalls.stalled(k, tail)))
+                            for k in range(self.f.hosts)))
+        whole = capacity * end
+        return work / whole, (cap_end - work_end) / whole
 
     def waited(self, at_least_s: float) -> List[Wait]:
         """The steps the job took ``at_least_s`` seconds or more after the one before, each with

@@ -603,6 +603,20 @@ def test_two_hosts_one_at_a_third_of_its_speed_routed_make_most_of_their_sum_sta
     assert routed.decodes <= 1.06  # 1.036: copies of the slow host's clips the head waited on
 
 
+def test_the_simulator_counts_the_capacity_spent_decoding_and_idle_at_the_epochs_end():
+    """``Result.decoding``: a host's decode of a clip spends its samples' worth of the capacity,
+    so a fleet that decodes each clip once spends exactly the share read; copies spend more, and
+    what is left idled, part of it in the epoch's last tenth (``Result.idle_end``)."""
+    one = simulate(Fleet(hosts=1, videos=200, spread=0.0, stall_s=0.0), "routed")
+    assert one.decodes == 1.0 and one.decoding == pytest.approx(one.share, rel=1e-9)
+    assert 0.0 <= one.idle_end <= 1 - one.decoding + 1e-9
+    f = Fleet(hosts=2, videos=600, spread=0.0, slow=(1, 1 / 3), stall_every_s=20.0, stall_s=4.0)
+    routed = simulate(f, "routed")
+    assert routed.decodes > 1.0 and routed.share < routed.decoding <= 1.0
+    assert 0.0 < routed.idle_end <= 1 - routed.decoding + 1e-9
+    assert simulate(f, "static").decoding is None  # the static split is not counted
+
+
 def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_088_of_their_summed_rate():
     """docs/scaling.md's row, read by the client's own pass: 0.90 over the whole epoch, 0.97 over
     its 10-90 % stretch."""
