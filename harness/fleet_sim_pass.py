@@ -427,18 +427,13 @@ class PassWorld:
         out of a stall counted at its host's speed, decodes still running at the end up to it,
         as a share of the capacity's; and the capacity's share that idled in the last tenth."""
         tail = 0.9 * end
+
+        def unstalled(k: int, a: float, b: float) -> float:  # host k's seconds in [a, b) out of its stalls
+            return b - a - (self.stalls.stalled(k, b) - self.stalls.stalled(k, a))
         spans = self.decoded + [(h.k, start, end) for h in self.hosts for start, *_ in h.running.values()]
-        work = work_end = 0.0
-        for k, a, b in spans:
-            b = min(b, end)
-            work += self.speeds[k] * (b - a - (self.stalls.stalled(k, b) - self.stalls.stalled(k, a)))
-            if b > tail:
-                a = max(a, tail)
-                work_end += self.speeds[k] * (b - a - (self.stalls.stalled(k, b) - self.stalls.stalled(k, a)))
-        slots = self.f.slots
-        cap_end = float(sum(self.speeds[k] * slots * (end - tail - (self.stalls.stalled(k, end)
-                                                                     - self.stalls.stalled(k, tail)))
-                            for k in range(self.f.hosts)))
+        work = sum(self.speeds[k] * unstalled(k, a, min(b, end)) for k, a, b in spans)
+        work_end = sum(self.speeds[k] * unstalled(k, max(a, tail), min(b, end)) for k, a, b in spans if b > tail)
+        cap_end = float(sum(self.speeds[k] * self.f.slots * unstalled(k, tail, end) for k in range(self.f.hosts)))
         whole = capacity * end
         return work / whole, (cap_end - work_end) / whole
 

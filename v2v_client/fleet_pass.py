@@ -328,7 +328,7 @@ class Pass:
             for i in range(0, len(ordinals), MAX_MAKE_SAMPLES):
                 self.ask(video, ordinals[i:i + MAX_MAKE_SAMPLES], now)
             return
-        count = len(ordinals) if ordinals else self.per_video()
+        count = self.asked_samples([ordinals])
         if v.refused and all(h in v.refused for h in self.router.hosts):
             ep, why = next(reversed(v.refused.items()))
             raise PlanServerError(f"{ep}: {why} (every host of the fleet refused a make of it)")
@@ -712,7 +712,7 @@ def steal(read: "Pass", now: float, late: bool) -> None:
         if v is None or not v.flight:
             continue
         asked = sorted(v.holders)
-        n = len(ords) if ords else read.per_video()
+        n = read.asked_samples([ords])
         waited = now - max(read.head_since, v.first_asked)
         h = read.router.copy(read.epoch, video, n, now, asked, read.start_by(video), v.refused,
                              read.video_samples(video), waited)
