@@ -366,7 +366,8 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
         read.router.heard(fast, 0.5, rate=10.0, queued=fast_queued)
         n = len(sent)
         read.rescue(0.6)
-        out = [(h, m.video, m.route, m.move) for h, m in sent[n:] if isinstance(m, Make)]
+        # moves only: the window holds the epoch's last step, whose copies (back_up) the test below judges
+        out = [(h, m.video, m.route, m.move) for h, m in sent[n:] if isinstance(m, Make) and m.move]
         first = min(read.videos, key=lambda video: read.videos[video].position)
         return out, first, read, sent[n:]
 
@@ -389,23 +390,25 @@ def test_a_fleet_pass_moves_the_first_video_queued_behind_a_slow_hosts_work_to_a
 
 
 def test_a_fleet_pass_at_its_epochs_end_copies_what_a_slow_or_paused_host_holds_to_an_idle_host():
-    """Once the window holds the epoch's last step, a video of one host is copied to an idle host
-    (``fleet_pass.back_up``) where the copy's decode, by ``1 + slack``, is shorter than what its
-    host has left (its decode less the seconds since the ask; no end for a quiet host): the
-    epoch ends with its last clip, and the idle hosts have nothing else to make. Not before the
-    window holds the last step, nor where the host would be done first, nor twice."""
+    """Once the window holds the epoch's last step, a video of one host is copied
+    (``fleet_pass.back_up``, ``Router.backup``) to the first host of its ranking two weight steps
+    faster (any host, for a quiet one) where that host, its queue first, would make it sooner by
+    ``1 + slack`` than its holder's whole decode (no end for a quiet holder), where the holder
+    would make it after the head reaches the epoch's end at the fleet's rate: the epoch ends
+    with its last clip. Not before the window holds the last step, nor to a host about as fast,
+    nor to one whose queue would make it later, nor of a holder done before the end, nor twice."""
     from v2v_client.fleet_pass import SHARE_S
     from v2v_wire.plan_messages import Make
 
     slow, fast = HOSTS[:2]
 
-    def copies(slots, slow_rate, at=0.9, paused=False):
+    def copies(slots, slow_rate, at=0.9, paused=False, fast_queued=0):
         read, sent = _fleet_pass(slots, [slow], others=[fast], stop=4)
         read.withdraws = {fast}  # no move off the slow host (share_idle): its copy is what is judged
         read.router.heard(slow, 0.0, rate=slow_rate)
         read.ask_window(0.0)
         read.router.join(fast, 0.5)
-        read.router.heard(fast, 0.5, rate=10.0, queued=0)
+        read.router.heard(fast, 0.5, rate=10.0, queued=fast_queued)
         if paused:
             assert read.router.pings(read.router.ping_s) == [slow]  # it answers no more
         read.wanted(at - 0.1)  # the head has waited less than STEAL_S: no copy of steal's
@@ -418,10 +421,48 @@ def test_a_fleet_pass_at_its_epochs_end_copies_what_a_slow_or_paused_host_holds_
         return got
 
     one = {"clips/a.mp4": 4}
-    assert copies(one, 0.4) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]  # 10 s of decode, 0.9 s in
-    assert copies(one, 4.0) == []  # 1 s of decode, 0.9 s in: done before the copy
-    assert copies(one, 4.0, at=4.0, paused=True) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]
+    assert copies(one, 0.4) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]  # 25 times as fast
+    assert copies(one, 2.0) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]  # 5 times: 0.5 s, past the end's 0.33 s
+    assert copies(one, 4.0) == []  # 2.5 times, but done in 0.25 s: before the head reaches the end (0.29 s)
+    assert copies(one, 9.0) == []  # about as fast: the same weight step
+    assert copies(one, 0.4, fast_queued=200) == []  # 200 samples to make first: later than the holder
+    assert copies(one, 9.0, at=4.0, paused=True) == [(fast, "clips/a.mp4", (0, 1, 2, 3))]  # a quiet holder
     assert copies({"clips/a.mp4": 4, "clips/b.mp4": 4}, 0.4) == []  # a step after this one
+
+
+def test_every_reader_backs_a_video_up_to_the_same_host_two_weight_steps_faster_than_its_holder():
+    """``Router.backup`` decides by what the hosts say, which every reader of a job hears alike:
+    two readers that asked a slow host for a video seconds apart both copy it, to the same host
+    (the first of its ranking among those two weight steps or more above the holder), whose one
+    decode then answers both. A host one step above is no backup, though 1.27 times as fast,
+    unless the holder is quiet (a paused process); nor is a fast host whose queue would make it
+    later."""
+    from v2v_wire.fleet import QUIET_S
+
+    hosts = HOSTS[:4]
+    holder, video = hosts[0], "clips/a.mp4"
+
+    def reader(rates, queued=(0, 0, 0, 0)):
+        r = Router(hosts, workers=1)
+        for h, rate, q in zip(hosts, rates, queued):
+            r.heard(h, 0.0, rate=rate, queued=q)
+        r.ask(holder, 0, video, 4, 0.0)
+        return r
+
+    rates = [1.0, 3.0, 3.0, 1.0]  # weight steps -4, 2, 2, -4
+    fast = [h for h in rank_hosts(video, hosts, reader(rates).weights()) if h in hosts[1:3]]
+    early, late = reader(rates), reader(rates)
+    picks = [early.backup(0, video, 2, 0.5, holder, 4, asked_s=0.5),
+             late.backup(0, video, 4, 0.5, holder, 4, asked_s=3.9)]  # 0.1 s of its 4 s decode left by its ask
+    assert picks == [fast[0], fast[0]]
+    assert reader(rates, queued=(0, 40, 40, 0)).backup(0, video, 4, 0.5, holder, 4, asked_s=0.5) is None
+
+    near = [1.0, 1.27, 1.0, 1.0]  # weight steps 0, 1, 0, 0: 3.15 s, 3.9 s by 1 + slack, against 4 s
+    assert reader(near).backup(0, video, 4, 0.5, holder, 4, asked_s=0.5) is None
+    paused = reader(near)
+    assert paused.pings(paused.ping_s) == [holder]  # it answers no more
+    first = rank_hosts(video, hosts[1:], paused.weights())[0]
+    assert paused.backup(0, video, 4, paused.ping_s + QUIET_S, holder, 4, asked_s=1.0) == first
 
 
 def test_a_host_that_dies_before_it_answers_a_move_is_hedged_though_its_queue_moved_off_it():

@@ -767,24 +767,20 @@ def share_idle(read: "Pass", now: float) -> None:
 
 
 def back_up(read: "Pass", now: float) -> None:
-    """Once the window holds the epoch's last step, each video in flight of one host is copied to
-    an idle host where ``Router.backup`` says the copy would be made sooner: the videos whose
-    host has the most left first, each to the fastest idle host left (MapReduce's backup tasks).
-    The idle hosts are the reader's share of them (``Pass.reader``, as :func:`share_idle`); a
-    video is copied once a pass, every :data:`SHARE_S` at most. At an epoch's end the hosts idle
-    while its last clips are made on slow hosts and on hosts that stalled making them. 128
-    simulated hosts, whole epoch: 8 readers at sigma 0.2, seeds 0-2, read 0.908-0.915 of the
-    hosts' capacity (0.881-0.903 without), 32 readers at sigma 0.5, seeds 0-3, 0.871-0.897
-    (0.871-0.890), at most 0.003 more decodes a clip (docs/scaling.md)."""
+    """Once the window holds the epoch's last step, each video in flight of one host is copied
+    where ``Router.backup`` says (MapReduce's backup tasks): the first host of its ranking well
+    faster than its holder that would make it sooner, the one every reader of the job picks for
+    it; the videos whose host has the most left first. A video is copied once a pass, every
+    :data:`SHARE_S` at most. 128 simulated hosts, whole epoch, seed 0: at sigma 0.5, 1, 8, 32
+    and 128 readers read 0.923, 0.922, 0.874 and 0.864 of the hosts' capacity (0.904, 0.905,
+    0.871 and 0.850 with each reader's copies on its own share of the idle hosts), at sigma 0.2
+    0.929, 0.913, 0.909 and 0.905 (0.929, 0.908, 0.901, 0.902), at 1.007-1.030 decodes a clip
+    (docs/scaling.md)."""
     if not read.at_end or now < read.backed_at + SHARE_S:
         return
     read.backed_at = now
-    router, (index, readers) = read.router, read.reader
+    router = read.router
     moving = read.flight.destinations
-    idle = sorted((h for h in router.idle(now) if host_key(h) % readers == index and router.hosts[h].rate
-                   and h not in moving), key=lambda h: (router.decode_s(1, h), h))
-    if not idle:
-        return
     waits = []
     for video in {video for video, _ in read.flight.values()}:
         v = read.videos[video]
@@ -795,14 +791,13 @@ def back_up(read: "Pass", now: float) -> None:
         whole = read.video_samples(video)
         asked_s = now - v.first_asked
         waits.append((-router.left_s(host, whole, asked_s, now), video, host, whole, asked_s))
+    end_s = read.due(len(read.plan)) or 0.0
     for _, video, host, whole, asked_s in sorted(waits):
         v = read.videos[video]
         count = read.asked_samples(ords for _, ords, _ in v.flight.values())
-        pick = router.backup(read.epoch, video, count, now, host, whole, asked_s, idle, read.start_by(video))
+        pick = router.backup(read.epoch, video, count, now, host, whole, asked_s, read.start_by(video), moving, end_s)
         if pick is None:
             continue
         v.backed = True
         for _, ords, _ in list(v.flight.values()):
             read.send(video, ords, pick, now, here=True)  # made where asked
-        if not idle:
-            return
