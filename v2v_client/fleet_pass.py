@@ -770,7 +770,8 @@ def back_up(read: "Pass", now: float) -> None:
     """Once the window holds the epoch's last step, each video in flight of one host is copied
     where ``Router.backup`` says (MapReduce's backup tasks): the first host of its ranking well
     faster than its holder that would make it sooner, the one every reader of the job picks for
-    it; the videos whose host has the most left first. A video is copied once a pass, every
+    it, where the holder would make it after the head reaches the epoch's end (:meth:`Pass.due`);
+    the videos whose host has the most left first. A video is copied once a pass, every
     :data:`SHARE_S` at most. 128 simulated hosts, whole epoch, seed 0: at sigma 0.5, 1, 8, 32
     and 128 readers read 0.923, 0.922, 0.874 and 0.864 of the hosts' capacity (0.904, 0.905,
     0.871 and 0.850 with each reader's copies on its own share of the idle hosts), at sigma 0.2

@@ -60,8 +60,9 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   the first copy's rows win. Once a reader has asked its epoch's last step, each video it awaits
   of one host is copied to the first host of its ranking :data:`BACKUP_STEPS` weight steps faster
   that would make it sooner (:meth:`Router.backup`): the same host for every reader of the
-  job, so a clip's readers wait on one copy. A host with nothing queued takes, as a move, the first video a
-  reader awaits that it would make before the host holding it starts it (:meth:`Router.share`):
+  job, so a clip's readers wait on one copy. A host with nothing queued takes, as a move, the
+  first video a reader awaits that it would make before the host holding it starts it
+  (:meth:`Router.share`):
   the idle host is one reader's of the job, so the job moves one video there, not one a reader.
   A host with this reader's work queued that answered nothing, not
   even a ping, for ``hedge_s`` is *suspect*: it is routed nothing new until it answers again. A
@@ -598,21 +599,23 @@ class Router:
         ``video_samples``, first needed at ``position``), asked of ``host`` alone ``asked_s``
         seconds ago: the first host of the video's ranking that answers (neither suspect nor
         quiet; none of ``exclude``), has said its rate and stands :data:`BACKUP_STEPS` weight
-        steps above ``host`` or more (any such host, for a quiet ``host``: a paused process), if it would
-        make it (:meth:`finish`: what it makes first, then the decode), by ``1 + slack``, before
-        ``host`` does: what ``host`` has left (:meth:`left_s`), at least its whole decode (a
-        queued decode starts after the ask), and later than ``end_s``, the seconds until the
-        reader's head reaches the epoch's end (``Pass.due``): a video its holder makes before
-        then holds no one at the end, and where the window spans much of a small epoch, copies
-        of all of them cost decodes (64 simulated hosts, 6,000 clips, 32 readers: 1.064 decodes
-        a clip). None: no copy. MapReduce's backup tasks: at an
-        epoch's end the hosts run out of work while its last clips are made on slow hosts and on
-        hosts that stalled (docs/scaling.md). The pick and the test use the hosts' own figures
-        (ranking, weights, rates, queues), which every reader of a job hears alike, so the
-        readers of a clip copy it to one host, whose one decode answers them all: each reader
-        copying to its own share of the idle hosts, one clip of 19 samples was copied to six
-        hosts while a reader with no idle host in its share waited on the slow one (128
-        simulated hosts, 32 readers, sigma 0.5). The pick's queue takes the video."""
+        steps or more above ``host`` (any such host, for a quiet ``host``: a paused process), if
+        it would make it (:meth:`finish`: what it makes first, then the decode), by ``1 +
+        slack``, before ``host`` does: what ``host`` has left (:meth:`left_s`), at least its
+        whole decode (a queued decode starts after the ask); and only where that is later than
+        ``end_s``, the seconds until the reader's head reaches the epoch's end (``Pass.due``):
+        a video made before then holds no one at the end, and where the window spans much of a
+        small epoch, copies of all of them cost decodes (64 simulated hosts, 6,000 clips, 32
+        readers: 1.064 decodes a clip). None: no copy.
+
+        MapReduce's backup tasks: at an epoch's end the hosts run out of work while its last
+        clips are made on slow hosts and on hosts that stalled (docs/scaling.md). The pick and
+        the test use the hosts' own figures (ranking, weights, rates, queues), which every
+        reader of a job hears alike, so the readers of a clip copy it to one host, whose one
+        decode answers them all. Each reader copying to its own share of the idle hosts, one
+        clip of 19 samples was copied to six hosts while a reader with no idle host in its
+        share waited on the slow one (128 simulated hosts, 32 readers, sigma 0.5). The pick's
+        queue takes the video."""
         weights = self.weights()  # steps the hosts' weights
         quiet, floor = self.quiet(host, now), (self.hosts[host].step or 0) + BACKUP_STEPS
         fast = [h for h in self._answering(video, now, {host, *exclude}, weights)
