@@ -122,6 +122,19 @@ def short_recipe(tmp_path) -> str:
     return str(p)
 
 
+@pytest.fixture
+def inductor_cache(tmp_path):
+    """Inductor's kernel cache in the test's own folder, for a test that compiles with inductor
+    in its process or in processes it starts (they inherit ``TORCHINDUCTOR_CACHE_DIR``).
+    Inductor takes a cached ``.so`` that exists as built: one left short in the machine's shared
+    cache (``/tmp/torchinductor_<user>``) by another process made a CI run's compiled steps
+    fail with "file too short", whatever the code under test."""
+    from torch._inductor.utils import fresh_cache
+
+    with fresh_cache(dir=str(tmp_path)):
+        yield
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _warm_kernel_cache():
     """Compile (or load from numba's cache) the kernel's common signatures once, before any

@@ -93,7 +93,7 @@ def test_busy_sampler_polls_nvidia_smi_of_the_visible_gpu(monkeypatch):
     assert busy.mean == sum(70 if i % 2 == 0 else 90 for i in range(n)) / n / 100
 
 
-def test_compiled_rows_count_graphs_through_a_moving_curriculum(tmp_path, videos):
+def test_compiled_rows_count_graphs_through_a_moving_curriculum(tmp_path, videos, inductor_cache):
     """``--compile`` on a CPU: inductor compiles the network, so the graphs column counts real
     graphs. HyperE2VID under ``speed: fast`` with its 16-stage curriculum spread over the row's 4
     cached steps (beta 1, 0.75, 0.5, 0.25, then 0 for the live steps, whose last batch of an

@@ -69,7 +69,7 @@ COMPILER = {"eraft": "aot_eager"}
 
 
 @pytest.mark.parametrize("task", TASKS)
-def test_fast_compiled_step_equals_eager(task):
+def test_fast_compiled_step_equals_eager(task, inductor_cache):
     # inductor draws dropout masks (ETNet's transformer) from its own generator unless it falls
     # back to aten's: with the fallback both steps draw the same masks
     with torch._inductor.config.patch(fallback_random=True):

@@ -61,7 +61,7 @@ def test_a_non_finite_loss_stops_the_run_at_the_logging_step(tmp_path):
         t.fit(FakeV2VStream(num_batches=40), 40, image_every=0, checkpoint_every=0, progress=False, log_every=5)
 
 
-def test_compile_trains_the_same_network(tmp_path):
+def test_compile_trains_the_same_network(tmp_path, inductor_cache):
     cfg = tiny_cfg("evflow", compile=True)
     t = Trainer(cfg, str(tmp_path), torch.device("cpu"))
     assert t.net is not t.model
