@@ -658,6 +658,7 @@ def test_the_simulator_counts_the_capacity_spent_decoding_and_idle_at_the_epochs
     assert simulate(f, "static").decoding is None  # the static split is not counted
 
 
+@pytest.mark.timeout(600)  # two simulated epochs of 128 hosts: 225 s in a loaded suite on 2 cores
 def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_088_of_their_summed_rate():
     """docs/scaling.md's row, read by the client's own pass: 0.90 over the whole epoch, 0.97 over
     its 10-90 % stretch."""
