@@ -539,8 +539,8 @@ class Pass:
 
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, moves to idle hosts
-        (:func:`share_idle`), copies to idle hosts at the epoch's end (:func:`back_up`), makes
-        asked again (of the next hosts for a host gone, of the same after ``retry_s``: a lost
+        (:func:`share_idle`), copies to idle hosts at the epoch's end (:func:`back_up`: the
+        moves their hosts kept counted first, ``Flights.kept``), makes asked again (of the next hosts for a host gone, of the same after ``retry_s``: a lost
         reply, a restart), and the asks no host could take before."""
         self.ping(now)
         parked, self.parked = self.parked, []
@@ -798,10 +798,11 @@ def back_up(read: "Pass", now: float) -> None:
     where ``Router.backup`` says (MapReduce's backup tasks): the first host of its ranking well
     faster than its holder that would make it sooner, the one every reader of the job picks for
     it, where the holder would make it after the head reaches the epoch's end (:meth:`Pass.due`);
-    the videos whose host has the most left first. A video is copied once a pass, every
-    :data:`SHARE_S` at most. 128 simulated hosts, whole epoch, seed 0: at sigma 0.5, 1, 8, 32
-    and 128 readers read 0.923, 0.922, 0.874 and 0.864 of the hosts' capacity (0.904, 0.905,
-    0.871 and 0.850 with each reader's copies on its own share of the idle hosts), at sigma 0.2
+    the videos whose host has the most left first; a video in a move its host kept
+    (``Flights.kept``) as any other. A video is copied once a pass, every :data:`SHARE_S` at
+    most. 128 simulated hosts, whole epoch, seed 0: at sigma 0.5, 1, 8, 32 and 128 readers read
+    0.923, 0.922, 0.899 and 0.864 of the hosts' capacity (0.904, 0.905, 0.871 and 0.850 with
+    each reader's copies on its own share of the idle hosts), at sigma 0.2
     0.929, 0.913, 0.909 and 0.905 (0.929, 0.908, 0.901, 0.902), at 1.007-1.030 decodes a clip
     (docs/scaling.md)."""
     if not read.at_end or now < read.backed_at + SHARE_S:
