@@ -107,9 +107,9 @@ class Flights(dict):
     awaits a request of is pinged and, silent, hedged whatever its queue holds); in :attr:`moves`,
     the host each move in flight moves its video to, and when it was asked (asked again after
     ``retry_s``, a move is asked as one), of which those in :attr:`held` its host kept
-    (:meth:`kept`); and in :attr:`sent`, a heap of ``(when asked, request,
-    video)`` (one entry a request, left behind when it is answered: :meth:`Pass.rescue` skips
-    those). Taken out by ``del`` and ``pop``, with its move."""
+    (:meth:`kept`); and in :attr:`sent`, a heap of ``(when asked, request, video)`` (one entry
+    a request, left behind when it is answered: :meth:`Pass.rescue` skips those). Taken out by
+    ``del`` and ``pop``, with its move."""
 
     def __init__(self):
         super().__init__()
@@ -539,9 +539,10 @@ class Pass:
 
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, moves to idle hosts
-        (:func:`share_idle`), copies to idle hosts at the epoch's end (:func:`back_up`: the
-        moves their hosts kept counted first, ``Flights.kept``), makes asked again (of the next hosts for a host gone, of the same after ``retry_s``: a lost
-        reply, a restart), and the asks no host could take before."""
+        (:func:`share_idle`), copies to idle hosts at the epoch's end (:func:`back_up`, the
+        moves their hosts kept counted first: ``Flights.kept``), makes asked again (of the next
+        hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart), and the
+        asks no host could take before."""
         self.ping(now)
         parked, self.parked = self.parked, []
         for video, ords in parked:
